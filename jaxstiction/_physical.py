@@ -1,0 +1,216 @@
+r"""Physical stiction model: Kano's $S$, $J$ fitted jointly with the linear part.
+
+$S$ and $J$ enter non-smoothly, so (as Jelali 2008, but vectorised) a grid over
+$(S, J)$ is evaluated in one `vmap`, with the linear part solved by least squares at
+each point (separable least squares); the best region is then refined on a finer
+grid with an output-error fit of the linear part at every point. The finer grid also
+gives a profile-likelihood interval for $S$ and $J$.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from ._blocks import kano
+from ._filters import fitness, is_stable, lagged, lfilter, steady_state
+from ._reduce import LowOrder
+from ._relax import _lstsq
+
+
+class PhysicalSettings(eqx.Module):
+    """Static settings of the physical (Kano) fit.
+
+    - `num_S`, `num_J`: stage-1 grid; `S` spans 0 to `max_band` × OP range,
+      `J` spans 0 to `S`.
+    - `starts`: best stage-1 points refined on a `refine` × `refine` local grid.
+    - `final`: points per axis of the output-error grid (stage 3, profile likelihood).
+    - `batch`: grid points evaluated at once (memory).
+    - `arx_order`: order of the least-squares linear part on the coarse grid.
+    - `order`: order of the output-error linear part.
+    - `max_delay`: delays 1..`max_delay` are tried.
+    """
+
+    num_S: int = eqx.field(static=True, default=61)
+    num_J: int = eqx.field(static=True, default=11)
+    max_band: float = eqx.field(static=True, default=1.0)
+    arx_order: int = eqx.field(static=True, default=4)
+    order: int = eqx.field(static=True, default=2)
+    max_delay: int = eqx.field(static=True, default=3)
+    starts: int = eqx.field(static=True, default=4)
+    refine: int = eqx.field(static=True, default=11)
+    final: int = eqx.field(static=True, default=5)
+    oe_steps: int = eqx.field(static=True, default=40)
+    batch: int = eqx.field(static=True, default=512)
+
+def _scale(x, lo, hi):
+    return 2.0 * (x - lo) / (hi - lo) - 1.0
+
+
+def arx_loss(x, y, weights, order: int, delay):
+    """Mean squared one-step error of the ARX model $A y = q^{-d}B x$ (LS by QR)."""
+    xd = _delay(x, delay)
+    X = jnp.concatenate([lagged(y, order), lagged(xd, order), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
+    w = weights * (jnp.arange(y.shape[0]) >= order + 3)
+    th = _lstsq(X * w[:, None], y * w, 1e-10)
+    return jnp.sum((w * (y - X @ th)) ** 2) / jnp.sum(w)
+
+
+def _delay(x, d):
+    # x delayed by d - 1 extra samples (lagged() supplies one), padded with x[0].
+    idx = jnp.arange(x.shape[0]) - (d - 1)
+    return jnp.where(idx >= 0, x[jnp.clip(idx, 0)], x[0])
+
+
+class OEModel(eqx.Module):
+    linear: LowOrder
+    offset: Float[Array, ""]
+    state: Float[Array, " s"]
+
+    def simulate(self, x, max_delay: int, *, initial_state=True):
+        b, a = self.linear.polynomials(max_delay)
+        zi = steady_state(b, a, x[0])
+        if initial_state:
+            zi = zi + self.state
+        return lfilter(b, a, x, zi) + self.offset
+
+
+def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tuple[OEModel, Array]:
+    """Output-error fit of $y = q^{-d} B/A\\, x + c$ (orders `order`), from an ARX
+    start, by Levenberg–Marquardt; the initial filter state is estimated too."""
+    L = order
+    xd = _delay(x, delay)
+    X = jnp.concatenate([-lagged(y, L), lagged(xd, L), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
+    w = weights * (jnp.arange(y.shape[0]) >= L + max_delay)
+    th = _lstsq(X * w[:, None], y * w, 1e-10)
+    a0, b0 = th[:L], th[L : 2 * L]
+    ok0 = is_stable(jnp.concatenate([jnp.ones((1,), y.dtype), a0]), margin=1e-3)
+    a0 = jnp.where(ok0, a0, jnp.zeros_like(a0).at[0].set(-0.5))
+    mask = jnp.ones((L,), y.dtype)
+    nstate = max_delay + L - 1
+
+    def model(theta):
+        a, b, c, s = theta
+        return OEModel(LowOrder(a, b, delay, mask), c, s)
+
+    def resid(theta, _):
+        return weights * (y - model(theta).simulate(x, max_delay))
+
+    theta0 = (a0, b0, jnp.zeros((), y.dtype), jnp.zeros((nstate,), y.dtype))
+    m0 = model(theta0)
+    c0 = jnp.sum(weights * (y - m0.simulate(x, max_delay))) / jnp.sum(weights)
+    theta0 = (a0, b0, c0, theta0[3])
+    sol = optx.least_squares(
+        resid, optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9), theta0, max_steps=max_steps, throw=False
+    )
+    m = model(sol.value)
+    ok = is_stable(m.linear.polynomials(max_delay)[1])
+    m = jax.tree.map(lambda n, s: jnp.where(ok, n, s), m, model(theta0))
+    return m, sol.result
+
+
+class PhysicalFit(eqx.Module):
+    """Result of [`jaxstiction.fit_physical`][] (S, J in % of OP span)."""
+
+    S: Float[Array, ""]
+    J: Float[Array, ""]
+    S_interval: Float[Array, " 2"]
+    J_interval: Float[Array, " 2"]
+    delay: Array
+    model: OEModel
+    v_oe: Float[Array, ""]
+    fitness: Float[Array, ""]
+    grid_S: Float[Array, " g"]
+    grid_J: Float[Array, " g"]
+    grid_loss: Float[Array, " g"]
+    result: optx.RESULTS
+
+
+@eqx.filter_jit
+def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSettings()) -> PhysicalFit:
+    r"""Fit Kano's stiction model ($S$, $J$ in % of span) and a low-order output-error
+    linear part to OP `op` (raw %) and scaled output `y`.
+
+    `lo`, `hi`: the OP range used to scale the valve position to [-1, 1] (as for the
+    spline model). `weights` marks estimation samples.
+    """
+    dtype = y.dtype
+    span = hi - lo
+    count = jnp.sum(weights)
+    delays = jnp.arange(1, settings.max_delay + 1)
+    # The loss is very rugged in (S, J): a slowly ramping controller output crosses
+    # the slip thresholds at sample-exact times, so a 0.25 % change in S can move a
+    # slip event. Hence a dense separable-LS search (cheap ARX least squares at each
+    # point, evaluated in batches) before any output-error fit.
+
+    def arx_at(s, j):
+        x = _scale(kano(op, s, j), lo, hi)
+        return jax.vmap(lambda d: arx_loss(x, y, weights, settings.arx_order, d))(delays)
+
+    def search(S, J):
+        loss = jax.lax.map(lambda sj: arx_at(*sj), (S, J), batch_size=settings.batch)
+        return jnp.min(loss, axis=1), jnp.argmin(loss, axis=1)
+
+    # Stage 1: S in [0, max_band * span], J = S * fraction.
+    Sg = jnp.linspace(0.0, settings.max_band, settings.num_S, dtype=dtype) * span
+    fr = jnp.linspace(0.0, 1.0, settings.num_J, dtype=dtype)
+    S1 = jnp.repeat(Sg, settings.num_J)
+    J1 = S1 * jnp.tile(fr, settings.num_S)
+    l1, _ = search(S1, J1)
+    top = jnp.argsort(l1)[: settings.starts]
+    # Stage 2: a fine local grid around each of the best stage-1 points.
+    dS = span * settings.max_band / (settings.num_S - 1)
+    r = jnp.linspace(-1.0, 1.0, settings.refine, dtype=dtype)
+    dJ = jnp.maximum(S1[top] / (settings.num_J - 1), dS)
+    S2 = jnp.clip(S1[top][:, None] + dS * jnp.repeat(r, settings.refine)[None, :], 0.0, None).ravel()
+    J2 = jnp.clip(J1[top][:, None] + dJ[:, None] * jnp.tile(r, settings.refine)[None, :], 0.0, None).ravel()
+    J2 = jnp.minimum(J2, S2)
+    l2, d2 = search(S2, J2)
+    k = jnp.argmin(l2)
+    delay = delays[d2[k]]
+    # Stage 3: output-error fits on a small grid around the best point, which also
+    # gives the profile likelihood of (S, J).
+    hs = dS / (settings.refine - 1)
+    hj = dJ[k // (settings.refine**2)] / (settings.refine - 1)
+    rr = jnp.linspace(-1.0, 1.0, settings.final, dtype=dtype)
+    Sf = jnp.clip(S2[k] + hs * jnp.repeat(rr, settings.final), 0.0, None)
+    Jf = jnp.minimum(jnp.clip(J2[k] + hj * jnp.tile(rr, settings.final), 0.0, None), Sf)
+
+    def fine(s, j):
+        x = _scale(kano(op, s, j), lo, hi)
+        m, res = fit_oe(x, y, weights, settings.order, delay, settings.max_delay, settings.oe_steps)
+        v = jnp.sum((weights * (y - m.simulate(x, settings.max_delay))) ** 2) / count
+        return m, jnp.where(jnp.isfinite(v), v, jnp.inf), res
+
+    models, v, res = jax.vmap(fine)(Sf, Jf)
+    b = jnp.argmin(v)
+    best = jax.tree.map(lambda t: t[b], models)
+    step = 2.0 / (settings.final - 1)
+    x = _scale(kano(op, Sf[b], Jf[b]), lo, hi)
+    ysim = best.simulate(x, settings.max_delay)
+    # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
+    # corrected for residual autocorrelation (output-error residuals are coloured).
+    e = weights * (y - ysim)
+    rho = jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2)
+    rho = jnp.clip(rho, 0.0, 0.99)
+    neff = count * (1 - rho) / (1 + rho)
+    inside = neff * jnp.log(v / v[b]) <= 5.99
+    S_int = jnp.stack([jnp.min(jnp.where(inside, Sf, jnp.inf)) - hs * step / 2, jnp.max(jnp.where(inside, Sf, -jnp.inf)) + hs * step / 2])
+    J_int = jnp.stack([jnp.min(jnp.where(inside, Jf, jnp.inf)) - hj * step / 2, jnp.max(jnp.where(inside, Jf, -jnp.inf)) + hj * step / 2])
+    S_int = jnp.clip(S_int, 0.0, None)
+    J_int = jnp.clip(J_int, 0.0, None)
+    return PhysicalFit(
+        S=Sf[b],
+        J=Jf[b],
+        S_interval=S_int,
+        J_interval=J_int,
+        delay=delay,
+        model=best,
+        v_oe=v[b],
+        fitness=fitness(y, ysim, weights),
+        grid_S=Sf,
+        grid_J=Jf,
+        grid_loss=v,
+        result=jax.tree.map(lambda t: t[b], res),
+    )
