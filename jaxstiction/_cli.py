@@ -1,0 +1,250 @@
+"""Command line: `jaxstiction demo | fit | screen` (DESIGN §6).
+
+Every command takes `--json` (exactly one JSON object on stdout, nothing else there)
+and `--out DIR` (pictures and a report). Progress and messages go to stderr. Bad input
+gives a one-line `error: ...` on stderr and exit status 2.
+"""
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+
+EXIT_BAD_INPUT = 2
+EXIT_INTERNAL = 1
+
+
+def _log(msg):
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _clean(obj):
+    """JSON-safe: NaN/inf become null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    return obj
+
+
+def _emit(args, payload: dict, text: str):
+    payload = _clean(payload)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.json").write_text(json.dumps(payload, indent=2) + "\n")
+        (out / "report.txt").write_text(text + "\n")
+    if args.json:
+        sys.stdout.write(json.dumps(payload) + "\n")
+    else:
+        print(text)
+
+
+def _figures(args, result, **kw):
+    if not args.out:
+        return []
+    from ._plots import write_fit_figures
+
+    return write_fit_figures(result, Path(args.out), **kw)
+
+
+def _summary(r) -> str:
+    lines = [
+        f"loop {r.name}: {r.n_estimation} estimation + {r.n_validation} validation samples, Ts = {r.ts:g} s",
+        f"  model: {r.model_kind} valve, direction rule {r.direction_rule}, {r.num_knots} knots, "
+        f"linear order {r.order}, delay {r.delay}",
+        f"  fitness (34): {r.fitness:.2f} %  ({'validation' if r.n_validation else 'estimation data'}); "
+        f"paper's literal method {r.fitness_paper:.2f} %",
+        f"  apparent stiction band: {r.band_percent:.2f} % of OP",
+    ]
+    if r.S is not None:
+        lines.append(
+            f"  Kano fit: S = {r.S:.2f} [{r.S_interval[0]:.2f}, {r.S_interval[1]:.2f}], "
+            f"J = {r.J:.2f} [{r.J_interval[0]:.2f}, {r.J_interval[1]:.2f}] % "
+            f"(physical-model fitness {r.fitness_physical:.2f} %)"
+        )
+    lines.append(f"  relaxation converged: {r.converged} ({r.relax_steps} sweeps)")
+    return "\n".join(lines)
+
+
+def cmd_demo(args):
+    import numpy as np
+
+    from ._filters import fitness
+    from ._fit import fit
+    from ._scenarios import make_scenario
+
+    _log(f"demo: simulating the paper_sim scenario (seed {args.seed}) ...")
+    sc = make_scenario("paper_sim", seed=args.seed)
+    est, val = sc.estimation, sc.validation
+    _log("demo: fitting (first run compiles; about a minute on 2 cores) ...")
+    t0 = time.time()
+    r = fit(np.asarray(est.op), np.asarray(est.pv), ts=float(est.ts), validate=0.0, name="paper_sim")
+    _log(f"demo: fitted in {time.time() - t0:.1f} s")
+    pv, clean = np.asarray(val.pv), np.asarray(val.pv_clean)
+    sim = r.predict(np.asarray(val.op))
+    sim_paper = r.predict(np.asarray(val.op), which="paper")
+
+    def f(a, b):
+        return float(fitness(a, b))
+
+    payload = {
+        "scenario": "paper_sim",
+        "seed": args.seed,
+        "fitness_validation": f(pv, sim),
+        "fitness_noise_free": f(clean, sim),
+        "ceiling": f(pv, clean),
+        "fitness_paper_method": f(pv, sim_paper),
+        "fitness_paper_method_noise_free": f(clean, sim_paper),
+        "stiction": {
+            "band_percent": r.band_percent,
+            "S": r.S,
+            "J": r.J,
+            "S_interval": r.S_interval,
+            "J_interval": r.J_interval,
+            "true_S": sc.truth.get("S"),
+            "true_J": sc.truth.get("J"),
+        },
+        "fit": r.to_json(),
+    }
+    text = "\n".join(
+        [
+            _summary(r),
+            "validation on an independent 1500-sample record:",
+            f"  fitness vs measured PV {payload['fitness_validation']:.2f} %, vs noise-free PV "
+            f"{payload['fitness_noise_free']:.2f} %, ceiling {payload['ceiling']:.2f} %",
+            f"  paper's literal method: {payload['fitness_paper_method']:.2f} % "
+            f"(noise-free {payload['fitness_paper_method_noise_free']:.2f} %)",
+        ]
+    )
+    if args.out:
+        import dataclasses
+
+        vr = dataclasses.replace(
+            r,
+            op=np.asarray(val.op),
+            pv=pv,
+            pv_sim=sim,
+            pv_sim_paper=sim_paper,
+            n_estimation=0,
+            n_validation=pv.shape[0],
+            fitness=payload["fitness_validation"],
+        )
+        _figures(args, vr, noise_free=clean)
+    _emit(args, payload, text)
+    return 0
+
+
+def cmd_fit(args):
+    from ._fit import fit
+    from ._io import read_loop
+
+    loop = read_loop(args.file, ts=args.ts, name=args.name)
+    _log(f"fit: {loop.name}: {loop.op.shape[0]} samples, Ts = {loop.ts:g} s; fitting ...")
+    t0 = time.time()
+    r = fit(loop.op, loop.pv, ts=loop.ts, validate=args.validate, name=loop.name)
+    _log(f"fit: done in {time.time() - t0:.1f} s")
+    _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
+    _emit(args, r.to_json(), _summary(r))
+    return 0
+
+
+def cmd_screen(args):
+    from ._checks import LoopDataError
+    from ._fit import fit
+    from ._io import find_loop_files, read_loop
+
+    files = find_loop_files(args.paths)
+    loops = []
+    for i, path in enumerate(files, 1):
+        _log(f"screen: [{i}/{len(files)}] {path.name}")
+        entry = {"name": path.stem, "file": str(path)}
+        try:
+            loop = read_loop(path, ts=args.ts)
+            r = fit(loop.op, loop.pv, ts=loop.ts, validate=args.validate, name=loop.name)
+            band = r.band_percent
+            entry.update(
+                status="ok",
+                fitness=r.fitness,
+                band_percent=band,
+                stiction_detected=bool(math.isfinite(band) and band > args.band_threshold),
+                model=r.model_kind,
+                S=r.S,
+                J=r.J,
+            )
+        except (LoopDataError, ValueError) as e:
+            entry.update(status=str(e), stiction_detected=False, band_percent=None, fitness=None)
+        loops.append(entry)
+    loops.sort(key=lambda e: -(e["band_percent"] or 0.0) if e["status"] == "ok" else 1e9)
+    lines = [f"{'loop':<12} {'status':<6} {'band %':>8} {'fitness %':>10} stiction"]
+    for e in loops:
+        if e["status"] == "ok":
+            lines.append(
+                f"{e['name']:<12} {'ok':<6} {e['band_percent']:>8.2f} {e['fitness']:>10.2f} "
+                f"{'yes' if e['stiction_detected'] else 'no'}"
+            )
+        else:
+            lines.append(f"{e['name']:<12} error  {e['status']}")
+    _emit(args, {"loops": loops}, "\n".join(lines))
+    return 0
+
+
+def build_parser():
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    common.add_argument("--out", metavar="DIR", help="write pictures and a report into DIR")
+    p = argparse.ArgumentParser(
+        prog="jaxstiction",
+        description="Identify sticky control valves and the process behind them from OP/PV data.",
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("demo", parents=[common], help="run the paper_sim scenario end to end")
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(func=cmd_demo)
+    f = sub.add_parser("fit", parents=[common], help="fit one loop (CSV with OP, PV; or .mat)")
+    f.add_argument("file")
+    f.add_argument("--validate", type=float, default=1 / 3, metavar="FRACTION",
+                   help="hold out the last FRACTION for validation (0: validate on the estimation data)")
+    f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
+    f.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
+    f.set_defaults(func=cmd_fit)
+    s = sub.add_parser("screen", parents=[common], help="fit many loops (files or folders)")
+    s.add_argument("paths", nargs="+")
+    s.add_argument("--validate", type=float, default=1 / 3, metavar="FRACTION")
+    s.add_argument("--ts", type=float, default=None)
+    s.add_argument("--band-threshold", type=float, default=1.0,
+                   help="apparent band (%% of OP) above which stiction is reported")
+    s.set_defaults(func=cmd_screen)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    import jax
+
+    # The application (not the library) chooses float64, recommended for identification.
+    jax.config.update("jax_enable_x64", True)
+    from ._checks import LoopDataError
+
+    try:
+        return args.func(args)
+    except (LoopDataError, ValueError, OSError) as e:
+        msg = " ".join(str(e).split())
+        print(f"error: {msg}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # a bug: still one line, but say so
+        msg = " ".join(f"{type(e).__name__}: {e}".split())[:500]
+        print(f"error: internal failure ({msg}); please report it", file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":
+    sys.exit(main())
