@@ -87,7 +87,7 @@ def cmd_demo(args):
     r = fit(np.asarray(est.op), np.asarray(est.pv), ts=float(est.ts), validate=0.0, name="paper_sim")
     _log(f"demo: fitted in {time.time() - t0:.1f} s")
     pv, clean = np.asarray(val.pv), np.asarray(val.pv_clean)
-    sim = r.predict(np.asarray(val.op))
+    sim = r.predict(np.asarray(val.op), pv0=float(pv[0]))
     sim_paper = r.predict(np.asarray(val.op), which="paper")
 
     def f(a, b):

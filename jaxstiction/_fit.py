@@ -12,7 +12,7 @@ from ._blocks import kano
 from ._checks import check_loop
 from ._filters import fitness, step_response
 from ._hammerstein import SplineSettings, candidate_knots, fit_spline_candidates
-from ._physical import PhysicalSettings, fit_physical
+from ._physical import PhysicalSettings, fit_physical, physical_valve
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 
 
@@ -86,9 +86,19 @@ class LoopFit:
     process_a: np.ndarray
     _predict: object = dataclasses.field(repr=False, compare=False)
 
-    def predict(self, op) -> np.ndarray:
-        """Simulate the fitted model on a new OP record (starting at rest)."""
-        return self._predict(np.asarray(op, float))
+    def predict(self, op, pv0: float | None = None, *, which: str = "model") -> np.ndarray:
+        """Simulate the fitted model on a new OP record, starting at rest.
+
+        `pv0` (the record's first PV sample) sets the physical model's initial valve
+        position (steady state); without it the valve starts at the first OP value.
+        `which="paper"` simulates the paper's literal-method model instead.
+        """
+        if which not in ("model", "paper"):
+            raise ValueError(f"`which` must be 'model' or 'paper', got {which!r}")
+        op = np.asarray(op, float)
+        if pv0 is None:
+            pv0 = float("nan")
+        return self._predict(op, pv0, which)
 
     def to_json(self) -> dict:
         """The `fit` object of the JSON contract (DESIGN §6)."""
@@ -219,7 +229,7 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
     if settings.use_physical:
         # lo/hi as arrays: Python floats would be static and constant-folded by XLA.
         phys = fit_physical(opj, y, wj, jnp.asarray(lo, dtype), jnp.asarray(hi, dtype), settings.physical)
-        xs = scale_input(kano(opj, phys.S, phys.J), lo, hi)
+        xs = physical_valve(opj, phys.S, phys.J, phys.model, y[0], lo, hi, settings.physical.max_delay)
         ys_phys = np.asarray(phys.model.simulate(xs, settings.physical.max_delay)) * sd + mu
         dof_phys = 2 + 2 * settings.physical.order + 1
         foe_phys = (count + dof_phys) / (count - dof_phys) * float(phys.v_oe)
@@ -252,12 +262,20 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
         converged = bool(int(pick.relaxation.result._value) == 0)
     relax_steps = int(pick.relaxation.num_steps)
 
-    def predict(op_new):
+    def predict(op_new, pv0, which):
         opn = jnp.asarray(op_new, dtype)
         un = scale_input(opn, lo, hi)
-        if kind == "physical":
-            xs = scale_input(kano(opn, phys.S, phys.J), lo, hi)
+        if which == "model" and kind == "physical":
+            if np.isnan(pv0):
+                xs = scale_input(kano(opn, phys.S, phys.J), lo, hi)
+            else:
+                y0 = jnp.asarray((pv0 - mu) / sd, dtype)
+                xs = physical_valve(opn, phys.S, phys.J, phys.model, y0, lo, hi, settings.physical.max_delay)
             return np.asarray(phys.model.simulate(xs, settings.physical.max_delay, initial_state=False)) * sd + mu
+        if which == "paper":
+            h = direction(un)
+            ph = hysteresis_regressors(un, h, knots[lit], masks[lit])
+            return np.asarray(plit.paper.simulate(ph, D, initial_state=False)) * sd + mu
         h = direction(un, threshold=thr if ri == 1 else 0.0)
         ph = hysteresis_regressors(un, h, knots[ki], masks[ki])
         return np.asarray(pick.model.simulate(ph, D, initial_state=False)) * sd + mu

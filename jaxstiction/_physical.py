@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._blocks import kano
+from ._blocks import kano, kano_init
 from ._filters import fitness, is_stable, lagged, lfilter, steady_state
 from ._reduce import LowOrder
 from ._relax import _lstsq
@@ -26,7 +26,7 @@ class PhysicalSettings(eqx.Module):
       `J` spans 0 to `S`.
     - `starts`: best stage-1 points refined on a `refine` × `refine` local grid.
     - `final`: points per axis of the output-error grid (stage 3, profile likelihood).
-    - `batch`: grid points evaluated at once (memory).
+    - `burn_in`: samples ignored after the model valve first moves (see `_burn_in`).
     - `arx_order`: order of the least-squares linear part on the coarse grid.
     - `order`: order of the output-error linear part.
     - `max_delay`: delays 1..`max_delay` are tried.
@@ -38,11 +38,11 @@ class PhysicalSettings(eqx.Module):
     arx_order: int = eqx.field(static=True, default=4)
     order: int = eqx.field(static=True, default=2)
     max_delay: int = eqx.field(static=True, default=3)
-    starts: int = eqx.field(static=True, default=4)
-    refine: int = eqx.field(static=True, default=11)
+    starts: int = eqx.field(static=True, default=8)
+    refine: int = eqx.field(static=True, default=21)
     final: int = eqx.field(static=True, default=5)
     oe_steps: int = eqx.field(static=True, default=40)
-    batch: int = eqx.field(static=True, default=512)
+    burn_in: int = eqx.field(static=True, default=10)
 
 def _scale(x, lo, hi):
     return 2.0 * (x - lo) / (hi - lo) - 1.0
@@ -55,6 +55,15 @@ def arx_loss(x, y, weights, order: int, delay):
     w = weights * (jnp.arange(y.shape[0]) >= order + 3)
     th = _lstsq(X * w[:, None], y * w, 1e-10)
     return jnp.sum((w * (y - X @ th)) ** 2) / jnp.sum(w)
+
+
+def _burn_in(x, weights, burn: int):
+    """Drop the samples before the model valve first moves (plus `burn` samples of
+    transient): until then the valve sits at an unknown initial position that the
+    model cannot know, and those samples would otherwise dominate the (S, J) search."""
+    moved = jnp.abs(x - x[0]) > 0
+    first = jnp.where(jnp.any(moved), jnp.argmax(moved), x.shape[0])
+    return weights * (jnp.arange(x.shape[0]) >= first + burn)
 
 
 def _delay(x, d):
@@ -110,6 +119,18 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
     return m, sol.result
 
 
+def physical_valve(op, S, J, model: OEModel, y0, lo, hi, max_delay: int):
+    """Scaled valve position for OP `op` through Kano(S, J), starting at rest at the
+    position that puts the model's steady-state output at the first PV sample `y0`
+    (the valve's initial position is otherwise unknown)."""
+    b, a = model.linear.polynomials(max_delay)
+    gain = jnp.sum(b) / jnp.sum(a)
+    x0 = (y0 - model.offset) / jnp.where(jnp.abs(gain) > 1e-12, gain, 1e-12)
+    x0 = jnp.clip(lo + (x0 + 1.0) * (hi - lo) / 2.0, jnp.min(op) - (hi - lo), jnp.max(op) + (hi - lo))
+    state = (x0,) + tuple(kano_init(op[0])[1:])
+    return _scale(kano(op, S, J, state=state), lo, hi)
+
+
 class PhysicalFit(eqx.Module):
     """Result of [`jaxstiction.fit_physical`][] (S, J in % of OP span)."""
 
@@ -144,12 +165,23 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     # slip event. Hence a dense separable-LS search (cheap ARX least squares at each
     # point, evaluated in batches) before any output-error fit.
 
+    # Samples before the model valve first moves are charged the output variance
+    # (unexplained), so a late first move is not a way to skip data.
+    var_y = jnp.sum(weights * (y - jnp.sum(weights * y) / count) ** 2) / count
+
+    def charged(v, wb):
+        skipped = jnp.sum(weights - wb)
+        return (v * jnp.sum(wb) + skipped * var_y) / count
+
     def arx_at(s, j):
         x = _scale(kano(op, s, j), lo, hi)
-        return jax.vmap(lambda d: arx_loss(x, y, weights, settings.arx_order, d))(delays)
+        wb = _burn_in(x, weights, settings.burn_in)
+        return jax.vmap(lambda d: charged(arx_loss(x, y, wb, settings.arx_order, d), wb))(delays)
 
     def search(S, J):
-        loss = jax.lax.map(lambda sj: arx_at(*sj), (S, J), batch_size=settings.batch)
+        # Plain vmap: `lax.map(..., batch_size=...)` stalled XLA's CPU runtime here
+        # (jaxlib 0.10.2, reproducible, all threads idle); the grid fits in memory.
+        loss = jax.vmap(arx_at)(S, J)
         return jnp.min(loss, axis=1), jnp.argmin(loss, axis=1)
 
     # Stage 1: S in [0, max_band * span], J = S * fraction.
@@ -179,19 +211,20 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
 
     def fine(s, j):
         x = _scale(kano(op, s, j), lo, hi)
-        m, res = fit_oe(x, y, weights, settings.order, delay, settings.max_delay, settings.oe_steps)
-        v = jnp.sum((weights * (y - m.simulate(x, settings.max_delay))) ** 2) / count
+        wb = _burn_in(x, weights, settings.burn_in)
+        m, res = fit_oe(x, y, wb, settings.order, delay, settings.max_delay, settings.oe_steps)
+        v = charged(jnp.sum((wb * (y - m.simulate(x, settings.max_delay))) ** 2) / jnp.sum(wb), wb)
         return m, jnp.where(jnp.isfinite(v), v, jnp.inf), res
 
     models, v, res = jax.vmap(fine)(Sf, Jf)
     b = jnp.argmin(v)
     best = jax.tree.map(lambda t: t[b], models)
     step = 2.0 / (settings.final - 1)
-    x = _scale(kano(op, Sf[b], Jf[b]), lo, hi)
+    x = physical_valve(op, Sf[b], Jf[b], best, y[0], lo, hi, settings.max_delay)
     ysim = best.simulate(x, settings.max_delay)
     # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
     # corrected for residual autocorrelation (output-error residuals are coloured).
-    e = weights * (y - ysim)
+    e = _burn_in(_scale(kano(op, Sf[b], Jf[b]), lo, hi), weights, settings.burn_in) * (y - ysim)
     rho = jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2)
     rho = jnp.clip(rho, 0.0, 0.99)
     neff = count * (1 - rho) / (1 + rho)

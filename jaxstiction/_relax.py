@@ -76,13 +76,17 @@ class ARXHammerstein(eqx.Module):
 
 
 def _lstsq(M, v, ridge):
-    # Tikhonov row-augmentation keeps masked (all-zero) columns well posed; the
-    # constant is tiny relative to the data scale (inputs scaled to O(1)).
+    # Columns are scaled to unit norm first, then Tikhonov rows sqrt(ridge) * I are
+    # appended: this keeps masked (all-zero) columns well posed while perturbing the
+    # solution by O(ridge / sigma_min^2) of the *scaled* problem only. (An absolute
+    # ridge would scale with the sqrt(N)-sized entries of R and bias the fit.)
     k = M.shape[1]
-    scale = jnp.sqrt(ridge) * (1.0 + jnp.max(jnp.abs(M)))
-    M = jnp.concatenate([M, scale * jnp.eye(k, dtype=M.dtype)], axis=0)
+    norms = jnp.sqrt(jnp.sum(M**2, axis=0))
+    scale = jnp.where(norms > 0, norms, 1.0)
+    Ms = M / scale
+    Ms = jnp.concatenate([Ms, jnp.sqrt(ridge) * jnp.eye(k, dtype=M.dtype)], axis=0)
     v = jnp.concatenate([v, jnp.zeros((k,), v.dtype)])
-    return lx.linear_solve(lx.MatrixLinearOperator(M), v, lx.QR(), throw=False).value
+    return lx.linear_solve(lx.MatrixLinearOperator(Ms), v, lx.QR(), throw=False).value / scale
 
 
 def _coef(model: ARXHammerstein):
@@ -102,17 +106,16 @@ def _normalise(a, b, beta, cov):
     return ARXHammerstein(a=a, b=b * s * sign, beta=beta / (s * sign))
 
 
-def relax_sweep(model: ARXHammerstein, prob: RelaxProblem, ridge=1e-10):
+def relax_sweep(model: ARXHammerstein, prob: RelaxProblem, ridge=1e-14):
     """One relaxation sweep: step (15), then step (16), then gain normalisation."""
     n, p = prob.order, prob.num_params
-    eye_n = jnp.eye(n, dtype=prob.R.dtype)
-    # (15): unknowns [a, beta] for fixed b.
-    Ta = jax.scipy.linalg.block_diag(-eye_n, jnp.kron(model.b[:, None], jnp.eye(p, dtype=eye_n.dtype)))
-    th = _lstsq(prob.R @ Ta, prob.r, ridge)
+    Ry = prob.R[:, :n]
+    Rphi = prob.R[:, n:].reshape(-1, n, p)  # columns indexed by (lag k, basis j)
+    # (15): unknowns [a, beta] for fixed b: Z T_a(b) = [-Y, sum_k b_k Phi_k].
+    th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,k->ij", Rphi, model.b)], axis=1), prob.r, ridge)
     a, beta = th[:n], th[n:]
-    # (16): unknowns [a, b] for fixed beta.
-    Tb = jax.scipy.linalg.block_diag(-eye_n, jnp.kron(eye_n, beta[:, None]))
-    th = _lstsq(prob.R @ Tb, prob.r, ridge)
+    # (16): unknowns [a, b] for fixed beta: Z T_b(beta) = [-Y, Phi_k beta].
+    th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,j->ik", Rphi, beta)], axis=1), prob.r, ridge)
     a, b = th[:n], th[n:]
     return _normalise(a, b, beta, prob.cov)
 

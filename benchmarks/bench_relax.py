@@ -1,0 +1,239 @@
+"""Throughput of the high-order Hammerstein ARX relaxation, (13)-(16) of the paper.
+
+Compares, in one run and on the same loops,
+
+- JAX: `jax.jit(jax.vmap(relax(relax_problem(y, phi, n))))` over a batch of loops
+  (QR compression + `optx.fixed_point` relaxation, float64, CPU), and
+- NumPy: `tests/reference.py::relax_reference`, the plain full-data implementation
+  (explicit regression matrices, `numpy.linalg.lstsq`), one loop at a time,
+
+and shows how time grows with the record length N, the ARX order n, the knot count m
+and the batch size. Loops are paper_sim-like closed loops (BJ process, PI control,
+Kano stiction S=20, J=2, 5 % noise power; `jaxstiction._simulate.simulate_loop` with
+the paper_sim `LoopConfig`), one PRNG seed per loop.
+
+    cd /work/main && PYTHONPATH=. python benchmarks/bench_relax.py [--quick]
+
+See benchmarks/README.md for the columns.
+"""
+
+import argparse
+import os
+import sys
+import time
+
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# The NumPy reference solves small least-squares problems one loop at a time: a
+# multi-threaded BLAS only adds overhead there, and collapses when the cores are shared
+# with another process. Set these yourself to override.
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optimistix as optx
+
+from jaxstiction._relax import relax, relax_problem
+from jaxstiction._simulate import LoopConfig, simulate_loop
+from jaxstiction._spline import hysteresis_regressors, scale_input, uniform_knots
+
+
+sys.path.insert(
+    0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests")
+)
+import reference as ref  # noqa: E402
+
+
+def simulate(batch, N, seed=0):
+    """`batch` paper_sim-like loops of N samples (op, pv as NumPy arrays)."""
+    cfg = LoopConfig(stiction="kano", S=20.0, J=2.0)  # the paper_sim configuration
+    keys = jax.vmap(lambda s: jr.PRNGKey(s))(jnp.arange(seed, seed + batch))
+    rec = jax.jit(jax.vmap(lambda k: simulate_loop(cfg, k, N)))(keys)
+    return np.asarray(rec.op), np.asarray(rec.pv)
+
+
+@jax.jit
+def _scaled(op, pv):
+    y = (pv - pv.mean()) / pv.std()
+    u = scale_input(op, op.min(), op.max())
+    h = jnp.concatenate(
+        [jnp.ones((1,)), (jnp.diff(u) >= 0).astype(u.dtype)]
+    )  # rule (5)
+    return y, u, h
+
+
+def prepare(op, pv, m):
+    """Scaled output y (B, N) and spline regressors phi (B, N, 2(m+2))."""
+    y, u, h = jax.vmap(_scaled)(jnp.asarray(op), jnp.asarray(pv))
+    knots = uniform_knots(m, jnp.float64)
+    phi = jax.vmap(lambda u, h: hysteresis_regressors(u, h, knots))(u, h)
+    return jax.block_until_ready(y), jax.block_until_ready(phi)
+
+
+_FITS = {}
+
+
+def jax_fit(n):
+    if n not in _FITS:
+
+        def one(y, phi):
+            sol = relax(relax_problem(y, phi, n))
+            return sol.loss, sol.num_steps, sol.result == optx.RESULTS.successful
+
+        _FITS[n] = jax.jit(jax.vmap(one))
+    return _FITS[n]
+
+
+def time_jax(y, phi, n, min_time):
+    f = jax_fit(n)
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(f(y, phi))
+    first = time.perf_counter() - t0
+    best, total, reps = np.inf, 0.0, 0
+    while reps < 2 or total < min_time:
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(y, phi))
+        dt = time.perf_counter() - t0
+        best, total, reps = min(best, dt), total + dt, reps + 1
+    loss, steps, result = (np.asarray(o) for o in out)
+    return dict(
+        compile=max(first - best, 0.0), t=best, loss=loss, steps=steps, ok=result
+    )
+
+
+def time_numpy(y, phi, n, count):
+    y, phi = np.asarray(y[:count]), np.asarray(phi[:count])
+    sols = []
+    t0 = time.perf_counter()
+    for i in range(count):
+        sols.append(ref.relax_reference(y[i], phi[i], n))
+    dt = time.perf_counter() - t0
+    return dict(
+        t=dt,
+        loss=np.array([s.loss for s in sols]),
+        steps=np.array([s.num_steps for s in sols]),
+        ok=np.array([s.converged for s in sols]),
+    )
+
+
+HEAD = (
+    "{:<6} {:>5} {:>3} {:>3} {:>5} | {:>9} {:>10} {:>9} {:>7} {:>5} | "
+    "{:>5} {:>9} {:>7} {:>5} | {:>7} {:>9}"
+)
+COLS = (
+    "sweep",
+    "N",
+    "n",
+    "m",
+    "batch",
+    "compile_s",
+    "batch_ms",
+    "jax_lps",
+    "j_step",
+    "j_ok",
+    "np_k",
+    "np_lps",
+    "n_step",
+    "n_ok",
+    "speedup",
+    "dloss_rel",
+)
+
+
+_DONE = {}
+
+
+def row(label, op, pv, N, n, m, batch, np_count, min_time):
+    key = (N, n, m, batch, min(np_count, batch))
+    if key in _DONE:  # the same case in another sweep: reuse its timing
+        print(f"{label:<6}" + _DONE[key][6:] + "  (same case as above)", flush=True)
+        return
+    y, phi = prepare(op[:batch, :N], pv[:batch, :N], m)
+    j = time_jax(y, phi, n, min_time)
+    k = min(np_count, batch)
+    r = time_numpy(y, phi, n, k)
+    jax_lps = batch / j["t"]
+    np_lps = k / r["t"]
+    rel = (j["loss"][:k] - r["loss"]) / r["loss"]
+    dloss = rel[
+        np.argmax(np.abs(rel))
+    ]  # signed: > 0 means the JAX fit has the higher loss
+    line = HEAD.format(
+        label,
+        N,
+        n,
+        m,
+        batch,
+        f"{j['compile']:.2f}",
+        f"{1e3 * j['t']:.2f}",
+        f"{jax_lps:.1f}",
+        int(j["steps"].max()),
+        f"{j['ok'].mean():.2f}",
+        k,
+        f"{np_lps:.1f}",
+        f"{r['steps'].mean():.0f}",
+        f"{r['ok'].mean():.2f}",
+        f"{jax_lps / np_lps:.1f}x",
+        f"{dloss:+.1e}",
+    )
+    _DONE[key] = line
+    print(line, flush=True)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument(
+        "--quick", action="store_true", help="a ~30 s version (fewer, smaller cases)"
+    )
+    ap.add_argument(
+        "--numpy-loops",
+        type=int,
+        default=None,
+        help="loops timed with NumPy per row (default 16, quick 4)",
+    )
+    args = ap.parse_args()
+    q = args.quick
+    np_count = args.numpy_loops or (8 if q else 16)
+    min_time = 0.1 if q else 0.5
+    base = dict(N=1500, n=10, m=6, batch=8 if q else 32)
+    Ns = (750, 1500) if q else (750, 1500, 3000)
+    ns = (5, 10) if q else (5, 10, 20)
+    ms = (4, 6) if q else (4, 6, 10)
+    batches = (1, 8) if q else (1, 8, 32, 128)
+    sweep_batch = 8 if q else 16
+
+    print(
+        f"jax {jax.__version__}, numpy {np.__version__}, device {jax.devices()[0]}, "
+        f"float64, {os.cpu_count()} CPU(s), "
+        f"OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}"
+    )
+    t0 = time.perf_counter()
+    op, pv = simulate(max(max(batches), base["batch"]), max(Ns))
+    print(
+        f"simulated {op.shape[0]} paper_sim-like loops of {op.shape[1]} samples "
+        f"in {time.perf_counter() - t0:.1f} s\n"
+    )
+    print(HEAD.format(*COLS))
+    print("-" * len(HEAD.format(*COLS)))
+    b = base
+    row("main", op, pv, b["N"], b["n"], b["m"], b["batch"], b["batch"], min_time)
+    for N in Ns:
+        row("N", op, pv, N, b["n"], b["m"], sweep_batch, np_count, min_time)
+    for n in ns:
+        row("n", op, pv, b["N"], n, b["m"], sweep_batch, np_count, min_time)
+    for m in ms:
+        row("m", op, pv, b["N"], b["n"], m, sweep_batch, np_count, min_time)
+    for B in batches:
+        row("batch", op, pv, b["N"], b["n"], b["m"], B, np_count, min_time)
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
