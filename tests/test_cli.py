@@ -1,0 +1,100 @@
+"""The command line: one-line errors with exit 2, and the JSON contract (DESIGN §6)."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+
+def run(*args, timeout=900):
+    return subprocess.run(
+        [sys.executable, "-m", "jaxstiction", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def _csv(path, op, pv, header="t,OP,PV"):
+    rows = [header] + [f"{i},{a},{b}" for i, (a, b) in enumerate(zip(op, pv))]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _good(n=800):
+    rng = np.random.default_rng(1)
+    op = 50 + 10 * np.sin(np.arange(n) / 25) + rng.normal(0, 0.3, n)
+    pv = np.convolve(op - 50, [0, 0.5, 0.3])[:n] + rng.normal(0, 0.1, n)
+    return op, pv
+
+
+def _assert_one_line_error(res, match):
+    assert res.returncode == 2, res.stderr
+    assert res.stdout == ""
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("error: ") and match in lines[0], lines[0]
+
+
+def test_missing_column(tmp_path):
+    op, pv = _good()
+    f = tmp_path / "x.csv"
+    f.write_text("t,OP\n" + "\n".join(f"{i},{a}" for i, a in enumerate(op)) + "\n")
+    _assert_one_line_error(run("fit", str(f), "--json"), "PV")
+
+
+def test_nan(tmp_path):
+    op, pv = _good()
+    pv[10] = np.nan
+    _assert_one_line_error(run("fit", str(_csv(tmp_path / "x.csv", op, pv)), "--json"), "NaN")
+
+
+def test_constant_op(tmp_path):
+    op, pv = _good()
+    _assert_one_line_error(run("fit", str(_csv(tmp_path / "x.csv", 0 * op + 30, pv)), "--json"), "constant")
+
+
+def test_too_short(tmp_path):
+    op, pv = _good(80)
+    _assert_one_line_error(run("fit", str(_csv(tmp_path / "x.csv", op, pv))), "at least")
+
+
+def test_unreadable_and_missing_file(tmp_path):
+    f = tmp_path / "junk.csv"
+    f.write_bytes(bytes(range(256)) * 4)
+    _assert_one_line_error(run("fit", str(f), "--json"), "junk.csv")
+    _assert_one_line_error(run("fit", str(tmp_path / "nope.csv")), "nope.csv")
+
+
+def test_screen_reports_per_loop_status(tmp_path):
+    op, pv = _good()
+    bad = op.copy()
+    bad[5] = np.nan
+    _csv(tmp_path / "bad.csv", bad, pv)
+    (tmp_path / "short.csv").write_text("OP,PV\n1,2\n2,3\n")
+    res = run("screen", str(tmp_path), "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    status = {e["name"]: e["status"] for e in out["loops"]}
+    assert set(status) == {"bad", "short"}
+    assert "NaN" in status["bad"] and "at least" in status["short"]
+    assert all(e["stiction_detected"] is False for e in out["loops"])
+
+
+def test_fit_json_contract_on_chem23(isdb, tmp_path):
+    res = run("fit", str(isdb / "CHEM23.csv"), "--validate", "0", "--json", "--out", str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)  # exactly one JSON object on stdout
+    assert out["fitness"] >= 77.0
+    assert {"fitness", "model", "stiction", "converged"} <= set(out)
+    assert out["model"]["knots"] >= 3 and "band_percent" in out["stiction"]
+    for name in ("report.json", "valve_curve.png", "model_fit.png", "step_response.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+
+@pytest.mark.parametrize("cmd", [["--help"], ["fit", "--help"], ["demo", "--help"]])
+def test_help(cmd):
+    res = run(*cmd)
+    assert res.returncode == 0 and "usage" in res.stdout

@@ -1,0 +1,78 @@
+"""The public `fit`: bad input, and the issue's CHEM23 figures (skipped without ISDB)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import jaxstiction as js
+
+
+def _loop(n=800, seed=0):
+    rng = np.random.default_rng(seed)
+    op = 50 + 10 * np.sin(np.arange(n) / 25) + rng.normal(0, 0.3, n)
+    pv = np.convolve(op - 50, [0, 0.5, 0.3], mode="full")[:n] + rng.normal(0, 0.1, n)
+    return op, pv
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda op, pv: (op, pv[:-1]), "samples but"),
+        (lambda op, pv: (np.where(np.arange(op.size) == 7, np.nan, op), pv), "NaN"),
+        (lambda op, pv: (op, np.where(np.arange(pv.size) == 3, np.inf, pv)), "inf"),
+        (lambda op, pv: (np.full_like(op, 42.0), pv), "constant"),
+        (lambda op, pv: (op[:60], pv[:60]), "at least"),
+    ],
+)
+def test_bad_input_is_a_one_line_value_error(mutate, match):
+    op, pv = mutate(*_loop())
+    with pytest.raises(ValueError, match=match) as e:
+        js.fit(op, pv)
+    assert "\n" not in str(e.value)
+
+
+def test_validate_fraction_is_checked():
+    op, pv = _loop()
+    with pytest.raises(ValueError, match="validate"):
+        js.fit(op, pv, validate=1.5)
+
+
+def test_too_short_after_holding_out_validation():
+    op, pv = _loop(n=600)
+    with pytest.raises(ValueError, match="at least"):
+        js.fit(op, pv, validate=0.5)
+
+
+@pytest.fixture(scope="module")
+def chem23(isdb):
+    loop = js.read_loop(isdb / "CHEM23.csv")
+    return loop, js.fit(loop.op, loop.pv, ts=loop.ts, validate=0.0, name="CHEM23")
+
+
+def test_chem23_paper_protocol(chem23):
+    # The paper reports 75.67 % on its estimation data; the issue asks for >= 77 %.
+    loop, r = chem23
+    assert r.n_validation == 0 and r.n_estimation == 1500
+    assert r.fitness >= 77.0
+    assert r.fitness == pytest.approx(float(js.fitness(loop.pv, r.pv_sim)), abs=1e-9)
+    assert r.converged
+    assert math.isfinite(r.band_percent) and 0 < r.band_percent < 100
+    assert r.S is not None and r.S_interval[0] <= r.S <= r.S_interval[1]
+    j = r.to_json()
+    json.dumps(j)  # serialisable
+    for key in ("fitness", "model", "stiction", "converged"):
+        assert key in j
+    assert "band_percent" in j["stiction"] and "knots" in j["model"]
+
+
+def test_chem23_held_out_last_third(chem23):
+    loop, _ = chem23
+    r = js.fit(loop.op, loop.pv, ts=loop.ts, validate=1 / 3, name="CHEM23")
+    assert r.n_validation == 500
+    assert r.fitness >= 76.0
+    # predict() on the full record reproduces the stored simulation of the chosen
+    # model when that model has no initial-state estimate to differ by.
+    sim = r.predict(loop.op, pv0=float(loop.pv[0]))
+    assert sim.shape == loop.op.shape and np.all(np.isfinite(sim))
