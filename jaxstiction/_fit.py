@@ -7,12 +7,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from ._blocks import kano
 from ._checks import check_loop
 from ._filters import fitness, step_response
-from ._hammerstein import SplineSettings, candidate_knots, fit_spline_candidates
-from ._physical import PhysicalSettings, fit_physical, physical_valve
+from ._hammerstein import candidate_knots, fit_spline_candidates, SplineSettings
+from ._physical import fit_physical, physical_valve, PhysicalSettings
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 
 
@@ -205,9 +206,11 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
     phi = hysteresis_regressors(u, H[ri], knots[ki], masks[ki])
     D = sset.max_delay
     ys_spline = np.asarray(pick.model.simulate(phi, D)) * sd + mu
-    ys_paper = np.asarray(pick.paper.simulate(phi, D, initial_state=False)) * sd + mu
     # the paper's literal method: literal rule, its own FOE choice, no polish
-    lit = int(np.argmin(np.where(np.isfinite(np.asarray(cand.foe)[0]), np.asarray(cand.foe)[0], np.inf)))
+    # (its FOE uses its own, unpolished output-error loss)
+    dof_paper = 2 * sset.arx_order + np.asarray(counts)
+    foe_paper = (n_est + dof_paper) / (n_est - dof_paper) * np.asarray(cand.v_oe_paper)[0]
+    lit = int(np.argmin(np.where(np.isfinite(foe_paper), foe_paper, np.inf)))
     plit = jax.tree.map(lambda t: t[0, lit], cand)
     phil = hysteresis_regressors(u, H[0], knots[lit], masks[lit])
     ys_lit = np.asarray(plit.paper.simulate(phil, D, initial_state=False)) * sd + mu
@@ -255,11 +258,10 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
     step = np.asarray(step_response(jnp.asarray(proc_b), jnp.asarray(a_full), 60))
 
     if kind == "physical":
-        S, J = float(phys.S), float(phys.J)
-        band = S
-        converged = bool(int(phys.result._value) == 0)
+        band = float(phys.S)
+        converged = bool(phys.result == optx.RESULTS.successful)
     else:
-        converged = bool(int(pick.relaxation.result._value) == 0)
+        converged = bool(pick.relaxation.result == optx.RESULTS.successful)
     relax_steps = int(pick.relaxation.num_steps)
 
     def predict(op_new, pv0, which):

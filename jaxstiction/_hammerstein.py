@@ -19,8 +19,8 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._filters import fitness, is_stable, lfilter, steady_state
-from ._reduce import LowOrder, ReductionSolution, asymptotic_weight, reduce_model
-from ._relax import RelaxSolution, relax, relax_problem
+from ._reduce import asymptotic_weight, LowOrder, reduce_model, ReductionSolution
+from ._relax import relax, relax_problem, RelaxSolution
 from ._spline import hysteresis_regressors
 
 
@@ -123,7 +123,8 @@ def polish(model: HammersteinModel, phi, y, weights, beta_mask, *, max_delay: in
     def loss(m):
         return jnp.sum((weights * (y - m.simulate(phi, max_delay))) ** 2)
 
-    start = HammersteinModel(beta0, LowOrder(model.linear.a, model.linear.b * sd, model.linear.delay, lin_mask), offset0, model.state)
+    start_linear = LowOrder(model.linear.a, model.linear.b * sd, model.linear.delay, lin_mask)
+    start = HammersteinModel(beta0, start_linear, offset0, model.state)
     better = ok & (loss(new) <= loss(start))
     chosen = jax.tree.map(lambda n, s: jnp.where(better, n, s), new, start)
     result = optx.RESULTS.where(ok, sol.result, optx.RESULTS.nonlinear_divergence)

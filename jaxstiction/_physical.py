@@ -229,8 +229,13 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     rho = jnp.clip(rho, 0.0, 0.99)
     neff = count * (1 - rho) / (1 + rho)
     inside = neff * jnp.log(v / v[b]) <= 5.99
-    S_int = jnp.stack([jnp.min(jnp.where(inside, Sf, jnp.inf)) - hs * step / 2, jnp.max(jnp.where(inside, Sf, -jnp.inf)) + hs * step / 2])
-    J_int = jnp.stack([jnp.min(jnp.where(inside, Jf, jnp.inf)) - hj * step / 2, jnp.max(jnp.where(inside, Jf, -jnp.inf)) + hj * step / 2])
+    def interval(v, h):
+        lo_ = jnp.min(jnp.where(inside, v, jnp.inf)) - h * step / 2
+        hi_ = jnp.max(jnp.where(inside, v, -jnp.inf)) + h * step / 2
+        return jnp.stack([lo_, hi_])
+
+    S_int = interval(Sf, hs)
+    J_int = interval(Jf, hj)
     S_int = jnp.clip(S_int, 0.0, None)
     J_int = jnp.clip(J_int, 0.0, None)
     return PhysicalFit(

@@ -33,9 +33,12 @@ def _good(n=800):
 def _assert_one_line_error(res, match):
     assert res.returncode == 2, res.stderr
     assert res.stdout == ""
+    # progress lines may precede it; the error itself is exactly one line, last
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1, res.stderr
-    assert lines[0].startswith("error: ") and match in lines[0], lines[0]
+    errors = [ln for ln in lines if ln.startswith("error: ")]
+    assert len(errors) == 1 and errors[0] == lines[-1], res.stderr
+    assert match in errors[0], errors[0]
+    assert "Traceback" not in res.stderr
 
 
 def test_missing_column(tmp_path):
