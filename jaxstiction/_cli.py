@@ -134,6 +134,7 @@ def cmd_demo(args):
             n_estimation=0,
             n_validation=pv.shape[0],
             fitness=payload["fitness_validation"],
+            fitness_paper=payload["fitness_paper_method"],
         )
         _figures(args, vr, noise_free=clean)
     _emit(args, payload, text)

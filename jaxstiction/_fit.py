@@ -258,6 +258,10 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
     step = np.asarray(step_response(jnp.asarray(proc_b), jnp.asarray(a_full), 60))
 
     if kind == "physical":
+        # the chosen model's own process: x_scaled = 2 (valve% - lo) / (hi - lo) - 1
+        pb, pa = (np.asarray(t) for t in phys.model.linear.polynomials(settings.physical.max_delay))
+        proc_b, a_full = pb * sd * 2.0 / (hi - lo), pa
+        step = np.asarray(step_response(jnp.asarray(proc_b), jnp.asarray(a_full), 60))
         band = float(phys.S)
         converged = bool(phys.result == optx.RESULTS.successful)
     else:
@@ -300,8 +304,8 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
         fitness_physical=None if phys is None else fit_on(ys_phys, val),
         direction_rule=RULES[ri],
         num_knots=int(counts[ki]),
-        order=order,
-        delay=int(pick.model.linear.delay),
+        order=settings.physical.order if kind == "physical" else order,
+        delay=int(phys.delay) if kind == "physical" else int(pick.model.linear.delay),
         arx_order=sset.arx_order,
         band_percent=band,
         S=None if phys is None else float(phys.S),
