@@ -15,7 +15,6 @@ of normal matrices, so its conditioning is that of the original problem.
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
