@@ -82,7 +82,7 @@ def cmd_demo(args):
     _log(f"demo: simulating the paper_sim scenario (seed {args.seed}) ...")
     sc = make_scenario("paper_sim", seed=args.seed)
     est, val = sc.estimation, sc.validation
-    _log("demo: fitting (first run compiles; about a minute on 2 cores) ...")
+    _log("demo: fitting (the first run compiles; a few minutes on 2 cores) ...")
     t0 = time.time()
     r = fit(np.asarray(est.op), np.asarray(est.pv), ts=float(est.ts), validate=0.0, name="paper_sim")
     _log(f"demo: fitted in {time.time() - t0:.1f} s")

@@ -263,6 +263,12 @@ def _fit_arrays(op, pv, n_est, ts, name, settings: FitSettings) -> LoopFit:
         proc_b, a_full = pb * sd * 2.0 / (hi - lo), pa
         step = np.asarray(step_response(jnp.asarray(proc_b), jnp.asarray(a_full), 60))
         band = float(phys.S)
+        # the valve picture is Kano's own loop: a triangular OP sweep hi -> lo -> hi -> lo
+        # (the first leg settles the valve state), ascent and descent legs read off.
+        sweep = np.concatenate([ug[::-1], ug, ug[::-1]])
+        xk = np.asarray(kano(jnp.asarray(sweep, dtype), phys.S, phys.J))
+        n_u = ug.shape[0]
+        valve_up, valve_down = xk[n_u : 2 * n_u], xk[2 * n_u :][::-1]
         converged = bool(phys.result == optx.RESULTS.successful)
     else:
         converged = bool(pick.relaxation.result == optx.RESULTS.successful)

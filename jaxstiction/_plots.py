@@ -56,13 +56,14 @@ def write_fit_figures(result, out_dir, *, validation_start=None, noise_free=None
     paths = []
     for name, fig in figures:
         path = out / name
+        fig.tight_layout()  # on this figure's own Agg canvas, not via pyplot
         fig.savefig(path, dpi=DPI)
         paths.append(path)
     return paths
 
 
 def _figure(size=SIZE) -> Figure:
-    fig = Figure(figsize=size, dpi=DPI, layout="tight")
+    fig = Figure(figsize=size, dpi=DPI)
     FigureCanvasAgg(fig)
     return fig
 
@@ -89,8 +90,12 @@ def _arrow_along(ax, u, f, frac, reverse, color):
     n = len(u)
     i = int(np.clip(round(frac * (n - 1)), 1, n - 2))
     j0, j1 = (i + 1, i - 1) if reverse else (i - 1, i + 1)
-    ax.annotate("", xy=(u[j1], f[j1]), xytext=(u[j0], f[j0]),
-                arrowprops=dict(arrowstyle="-|>", color=color, lw=1.5, mutation_scale=16))
+    ax.annotate(
+        "",
+        xy=(u[j1], f[j1]),
+        xytext=(u[j0], f[j0]),
+        arrowprops=dict(arrowstyle="-|>", color=color, lw=1.5, mutation_scale=16),
+    )
 
 
 def _interval(iv):
@@ -118,8 +123,7 @@ def _valve_curve(result) -> Figure:
         level = 0.5 * (min(up.min(), down.min()) + max(up.max(), down.max()))
         a, d = _crossing(u, up, level), _crossing(u, down, level)
         if a is not None and d is not None:
-            ax.annotate("", xy=(a, level), xytext=(d, level),
-                        arrowprops=dict(arrowstyle="<->", color="0.25", lw=1.2))
+            ax.annotate("", xy=(a, level), xytext=(d, level), arrowprops=dict(arrowstyle="<->", color="0.25", lw=1.2))
             ax.text(0.5 * (a + d), level, "band", ha="center", va="bottom", fontsize=8, color="0.25")
 
     lines = [f"apparent band = {band:.1f} % of OP" if band_ok else "apparent band: not found"]
@@ -132,8 +136,7 @@ def _valve_curve(result) -> Figure:
     if result.model_kind == "spline":
         kind += f" ({result.num_knots} knots, '{result.direction_rule}' direction rule)"
     lines.append(kind)
-    ax.text(0.98, 0.04, "\n".join(lines), transform=ax.transAxes, ha="right", va="bottom",
-            fontsize=9, bbox=BOX)
+    ax.text(0.98, 0.04, "\n".join(lines), transform=ax.transAxes, ha="right", va="bottom", fontsize=9, bbox=BOX)
 
     ax.set_xlabel("controller output OP (% of span)")
     ax.set_ylabel("valve position (% of travel)")
@@ -152,28 +155,43 @@ def _step_response(result) -> Figure:
     ax.plot(t, step, color=C_MODEL, lw=1.8, drawstyle="steps-post", label="linear model")
     ax.plot(t, step, "o", color=C_MODEL, ms=2.5)
     if len(step):
-        ax.axhline(step[-1], color="0.5", ls="--", lw=1.0,
-                   label=f"value at {t[-1]:g} s: {step[-1]:.3g}")
+        ax.axhline(step[-1], color="0.5", ls="--", lw=1.0, label=f"value at {t[-1]:g} s: {step[-1]:.3g}")
     if result.delay:
-        ax.axvline(result.delay * ts, color="0.4", ls=":", lw=1.0,
-                   label=f"delay {result.delay} samples = {result.delay * ts:g} s")
+        ax.axvline(
+            result.delay * ts,
+            color="0.4",
+            ls=":",
+            lw=1.0,
+            label=f"delay {result.delay} samples = {result.delay * ts:g} s",
+        )
     ax.axhline(0.0, color="0.7", lw=0.8)
     ax.set_xlabel("time after a 1 % step in valve position (s)")
     ax.set_ylabel("PV change (PV units per % of valve travel)")
-    ax.set_title(f"{result.name}: step response of the linear model "
-                 f"(order {result.order}, delay {result.delay} samples)")
+    ax.set_title(
+        f"{result.name}: step response of the linear model (order {result.order}, delay {result.delay} samples)"
+    )
     ax.legend(loc="lower right", fontsize=9)
     ax.grid(alpha=0.3)
     return fig
 
 
-def _shade(ax, result, validation_start, label=True):
+def _shade(ax, result, validation_start):
+    """Shade the validation part and label both parts at the top of `ax`."""
     if validation_start is None:
         return
-    n = len(result.pv)
     ts = float(result.ts)
-    ax.axvspan(validation_start * ts, n * ts, color=C_VAL, alpha=0.15, lw=0,
-               label="validation part" if label else None)
+    start, end = validation_start * ts, len(result.pv) * ts
+    ax.axvspan(start, end, color=C_VAL, alpha=0.15, lw=0)
+    top = ax.get_xaxis_transform()  # x in data, y in axes fraction
+    ax.text(start, 0.97, " validation \u2192", transform=top, ha="left", va="top", fontsize=8, color="0.3")
+    if validation_start > 0:
+        ax.text(start, 0.97, "\u2190 estimation ", transform=top, ha="right", va="top", fontsize=8, color="0.3")
+
+
+def _headroom(ax, frac=0.22):
+    """Raise the top y limit so a legend fits above the data."""
+    lo, hi = ax.get_ylim()
+    ax.set_ylim(lo, hi + frac * (hi - lo))
 
 
 def _model_fit(result, validation_start, noise_free) -> Figure:
@@ -195,14 +213,22 @@ def _model_fit(result, validation_start, noise_free) -> Figure:
         a.plot(t[part], pv[part], color=C_MEAS, lw=0.9 if full else 1.2, label="measured PV")
         if clean is not None:
             a.plot(t[part], clean[part], color=C_CLEAN, lw=0.7, label="noise-free PV")
-        a.plot(t[part], paper[part], color=C_PAPER, lw=1.0, ls="--",
-               label=f"paper's method ({result.fitness_paper:.1f} %)")
-        a.plot(t[part], sim[part], color=C_MODEL, lw=1.2 if full else 1.6,
-               label=f"{result.model_kind} model ({result.fitness:.1f} %)")
+        a.plot(
+            t[part], paper[part], color=C_PAPER, lw=1.0, ls="--", label=f"paper's method ({result.fitness_paper:.1f} %)"
+        )
+        a.plot(
+            t[part],
+            sim[part],
+            color=C_MODEL,
+            lw=1.2 if full else 1.6,
+            label=f"{result.model_kind} model ({result.fitness:.1f} %)",
+        )
         a.set_ylabel("PV (engineering units)")
         a.grid(alpha=0.3)
     ax.set_title(f"{result.name}: model fit, fitness {result.fitness:.1f} % ({scored})")
-    ax.legend(loc="upper right", fontsize=8, ncol=2)
+    for a in (ax, zoom):
+        _headroom(a)
+    zoom.legend(loc="upper center", fontsize=8, ncol=4)
     zoom.set_title(f"first {stop - first} samples of the scored part ({scored})", fontsize=10)
     zoom.set_xlabel("time (s)")
     return fig
@@ -223,14 +249,14 @@ def _op_pv(result, validation_start) -> Figure:
     ax_op.set_ylabel("OP (% of span)")
     ax_op.set_title(f"{result.name}: controller output and process output")
     ax_op.tick_params(labelbottom=False)
-    if validation_start is not None:
-        ax_op.legend(loc="upper right", fontsize=8)
-    _shade(ax_pv, result, validation_start, label=False)
+    _shade(ax_pv, result, validation_start)
     ax_pv.plot(t, pv, color=C_MEAS, lw=0.9)
     ax_pv.set_ylabel("PV (engineering units)")
     ax_pv.set_xlabel("time (s)")
     for a in (ax_op, ax_pv):
         a.grid(alpha=0.3)
+        if validation_start is not None:
+            _headroom(a, 0.15)
 
     ax_xy.plot(op, pv, color="0.75", lw=0.4, zorder=1)
     pts = ax_xy.scatter(op, pv, c=t, s=4, cmap="viridis", zorder=2)
