@@ -56,8 +56,12 @@ def _figures(args, result, **kw):
 def _summary(r) -> str:
     lines = [
         f"loop {r.name}: {r.n_estimation} estimation + {r.n_validation} validation samples, Ts = {r.ts:g} s",
-        f"  model: {r.model_kind} valve, direction rule {r.direction_rule}, {r.num_knots} knots, "
-        f"linear order {r.order}, delay {r.delay}",
+        (
+            f"  model: spline valve, direction rule {r.direction_rule}, {r.num_knots} knots, "
+            if r.model_kind == "spline"
+            else "  model: physical (Kano) valve, "
+        )
+        + f"linear order {r.order}, delay {r.delay}",
         f"  fitness (34): {r.fitness:.2f} %  ({'validation' if r.n_validation else 'estimation data'}); "
         f"paper's literal method {r.fitness_paper:.2f} %",
         f"  apparent stiction band: {r.band_percent:.2f} % of OP",
@@ -68,7 +72,7 @@ def _summary(r) -> str:
             f"J = {r.J:.2f} [{r.J_interval[0]:.2f}, {r.J_interval[1]:.2f}] % "
             f"(physical-model fitness {r.fitness_physical:.2f} %)"
         )
-    lines.append(f"  relaxation converged: {r.converged} ({r.relax_steps} sweeps)")
+    lines.append(f"  converged: {r.converged} (relaxation: {r.relax_steps} sweeps)")
     return "\n".join(lines)
 
 
