@@ -86,8 +86,13 @@ class OEModel(eqx.Module):
 
 
 def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tuple[OEModel, Array]:
-    """Output-error fit of $y = q^{-d} B/A\\, x + c$ (orders `order`), from an ARX
-    start, by Levenberg–Marquardt; the initial filter state is estimated too."""
+    """Box–Jenkins fit of $y = q^{-d} B/A\, x + c + \frac{C}{D} e$ (first-order $C/D$) by
+    Levenberg–Marquardt on the prediction error $\varepsilon = \frac{D}{C}(y - q^{-d}\frac{B}{A}x - c)$,
+    from an ARX start; the initial filter state is estimated too.
+
+    The noise model matters: in closed loop the input is correlated with the noise
+    through the controller, and a pure output-error fit ($C/D = 1$) is biased.
+    Returns the deterministic part (`OEModel`) and the solver result."""
     L = order
     xd = _delay(x, delay)
     X = jnp.concatenate([-lagged(y, L), lagged(xd, L), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
@@ -98,18 +103,26 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
     a0 = jnp.where(ok0, a0, jnp.zeros_like(a0).at[0].set(-0.5))
     mask = jnp.ones((L,), y.dtype)
     nstate = max_delay + L - 1
+    one = jnp.ones((1,), y.dtype)
 
     def model(theta):
-        a, b, c, s = theta
+        a, b, c, s, _, _ = theta
         return OEModel(LowOrder(a, b, delay, mask), c, s)
 
     def resid(theta, _):
-        return weights * (y - model(theta).simulate(x, max_delay))
+        cn, dn = theta[4], theta[5]
+        v = y - model(theta).simulate(x, max_delay)
+        # keep C/D invertible and stable inside the search
+        cn = jnp.tanh(cn)
+        dn = jnp.tanh(dn)
+        eps = lfilter(jnp.concatenate([one, dn]), jnp.concatenate([one, cn]), v)
+        return weights * eps
 
-    theta0 = (a0, b0, jnp.zeros((), y.dtype), jnp.zeros((nstate,), y.dtype))
+    z1 = jnp.zeros((1,), y.dtype)
+    theta0 = (a0, b0, jnp.zeros((), y.dtype), jnp.zeros((nstate,), y.dtype), z1, z1)
     m0 = model(theta0)
     c0 = jnp.sum(weights * (y - m0.simulate(x, max_delay))) / jnp.sum(weights)
-    theta0 = (a0, b0, c0, theta0[3])
+    theta0 = (a0, b0, c0, theta0[3], z1, z1)
     sol = optx.least_squares(
         resid, optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9), theta0, max_steps=max_steps, throw=False
     )
@@ -117,7 +130,6 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
     ok = is_stable(m.linear.polynomials(max_delay)[1])
     m = jax.tree.map(lambda n, s: jnp.where(ok, n, s), m, model(theta0))
     return m, sol.result
-
 
 def physical_valve(op, S, J, model: OEModel, y0, lo, hi, max_delay: int):
     """Scaled valve position for OP `op` through Kano(S, J), starting at rest at the
@@ -129,6 +141,11 @@ def physical_valve(op, S, J, model: OEModel, y0, lo, hi, max_delay: int):
     x0 = jnp.clip(lo + (x0 + 1.0) * (hi - lo) / 2.0, jnp.min(op) - (hi - lo), jnp.max(op) + (hi - lo))
     state = (x0,) + tuple(kano_init(op[0])[1:])
     return _scale(kano(op, S, J, state=state), lo, hi)
+
+
+def models_at(models, i):
+    """Member `i` of a batch of models."""
+    return jax.tree.map(lambda t: t[i], models)
 
 
 class PhysicalFit(eqx.Module):
@@ -218,26 +235,33 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
 
     models, v, res = jax.vmap(fine)(Sf, Jf)
     b = jnp.argmin(v)
-    best = jax.tree.map(lambda t: t[b], models)
     step = 2.0 / (settings.final - 1)
-    x = physical_valve(op, Sf[b], Jf[b], best, y[0], lo, hi, settings.max_delay)
-    ysim = best.simulate(x, settings.max_delay)
     # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
     # corrected for residual autocorrelation (output-error residuals are coloured).
-    e = _burn_in(_scale(kano(op, Sf[b], Jf[b]), lo, hi), weights, settings.burn_in) * (y - ysim)
-    rho = jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2)
-    rho = jnp.clip(rho, 0.0, 0.99)
+    x = _scale(kano(op, Sf[b], Jf[b]), lo, hi)
+    e = _burn_in(x, weights, settings.burn_in) * (y - models_at(models, b).simulate(x, settings.max_delay))
+    rho = jnp.clip(jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2), 0.0, 0.99)
     neff = count * (1 - rho) / (1 + rho)
     inside = neff * jnp.log(v / v[b]) <= 5.99
-    def interval(v, h):
-        lo_ = jnp.min(jnp.where(inside, v, jnp.inf)) - h * step / 2
-        hi_ = jnp.max(jnp.where(inside, v, -jnp.inf)) + h * step / 2
-        return jnp.stack([lo_, hi_])
+
+    def interval(g, h):
+        lo_ = jnp.min(jnp.where(inside, g, jnp.inf)) - h * step / 2
+        hi_ = jnp.max(jnp.where(inside, g, -jnp.inf)) + h * step / 2
+        return jnp.clip(jnp.stack([lo_, hi_]), 0.0, None)
 
     S_int = interval(Sf, hs)
     J_int = interval(Jf, hj)
-    S_int = jnp.clip(S_int, 0.0, None)
-    J_int = jnp.clip(J_int, 0.0, None)
+    # The loss is piecewise constant in (S, J) (slip events move at thresholds), so the
+    # arg-min sits anywhere on a flat cell, often at its edge. The point estimate is the
+    # member of the 95 % region nearest to the region's centroid: the most margin to
+    # the thresholds, hence the best chance of the same events on new data.
+    cS = jnp.sum(jnp.where(inside, Sf, 0.0)) / jnp.sum(inside)
+    cJ = jnp.sum(jnp.where(inside, Jf, 0.0)) / jnp.sum(inside)
+    dist = ((Sf - cS) / hs) ** 2 + ((Jf - cJ) / jnp.maximum(hj, 1e-12)) ** 2
+    b = jnp.argmin(jnp.where(inside, dist, jnp.inf))
+    best = models_at(models, b)
+    x = physical_valve(op, Sf[b], Jf[b], best, y[0], lo, hi, settings.max_delay)
+    ysim = best.simulate(x, settings.max_delay)
     return PhysicalFit(
         S=Sf[b],
         J=Jf[b],
