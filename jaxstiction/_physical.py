@@ -86,7 +86,7 @@ class OEModel(eqx.Module):
 
 
 def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tuple[OEModel, Array]:
-    """Box–Jenkins fit of $y = q^{-d} B/A\, x + c + \frac{C}{D} e$ (first-order $C/D$) by
+    r"""Box–Jenkins fit of $y = q^{-d} B/A\, x + c + \frac{C}{D} e$ (first-order $C/D$) by
     Levenberg–Marquardt on the prediction error $\varepsilon = \frac{D}{C}(y - q^{-d}\frac{B}{A}x - c)$,
     from an ARX start; the initial filter state is estimated too.
 

@@ -15,10 +15,9 @@ NAMES = ["valve_curve.png", "step_response.png", "model_fit.png", "op_pv.png"]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def fake_fit(**overrides):
+def fake_fit(n_est=400, n_val=400, **overrides):
     """A `LoopFit`-like namespace with synthetic arrays (the estimator is not run)."""
     rng = np.random.default_rng(0)
-    n_est, n_val = 400, 400
     n = n_est + n_val
     k = np.arange(n)
     op = 50 + 10 * np.sin(2 * np.pi * k / 90) + rng.normal(0, 0.3, n)
@@ -28,11 +27,29 @@ def fake_fit(**overrides):
     down = np.clip(u + 3.0, u[0], u[-1])
     step = 0.05 * (1 - 0.8 ** np.maximum(np.arange(60) - 2, 0))
     fields = dict(
-        name="synthetic loop", ts=10.0, n_estimation=n_est, n_validation=n_val,
-        model_kind="spline", fitness=87.25, fitness_paper=80.5, direction_rule="robust",
-        num_knots=5, order=2, delay=2, band_percent=6.0, S=None, J=None,
-        S_interval=None, J_interval=None, op=op, pv=pv, pv_sim=pv + rng.normal(0, 0.03, n),
-        pv_sim_paper=pv + rng.normal(0, 0.06, n), valve_u=u, valve_up=up, valve_down=down,
+        name="synthetic loop",
+        ts=10.0,
+        n_estimation=n_est,
+        n_validation=n_val,
+        model_kind="spline",
+        fitness=87.25,
+        fitness_paper=80.5,
+        direction_rule="robust",
+        num_knots=5,
+        order=2,
+        delay=2,
+        band_percent=6.0,
+        S=None,
+        J=None,
+        S_interval=None,
+        J_interval=None,
+        op=op,
+        pv=pv,
+        pv_sim=pv + rng.normal(0, 0.03, n),
+        pv_sim_paper=pv + rng.normal(0, 0.06, n),
+        valve_u=u,
+        valve_up=up,
+        valve_down=down,
         step=step,
     )
     fields.update(overrides)
@@ -55,38 +72,28 @@ def check_pngs(paths, out_dir):
         assert 600 <= width <= 1400 and 300 <= height <= 900, (path, width, height)
 
 
-@pytest.mark.parametrize(
-    "overrides, kwargs",
-    [
-        ({}, {}),
-        (dict(model_kind="physical", S=6.3, J=1.2, S_interval=(5.9, 6.7), J_interval=(0.8, 1.6),
-              band_percent=6.3), dict(validation_start=400)),
-        (dict(band_percent=float("nan"), n_estimation=800, n_validation=0), {}),
-    ],
-    ids=["spline", "physical-validation", "nan-band-no-validation"],
-)
+CASES = {
+    "spline": ({}, {}),
+    "physical-S-validation-noise-free": (
+        dict(model_kind="physical", S=6.3, J=1.2, S_interval=(5.9, 6.7), J_interval=(0.8, 1.6), band_percent=6.3),
+        dict(validation_start=400, noise_free=True),
+    ),
+    "nan-band-no-validation": (dict(band_percent=float("nan"), n_est=800, n_val=0), {}),
+    "short-record-S-without-intervals": (dict(n_est=100, n_val=50, S=4.0), dict(validation_start=100)),
+}
+
+
+@pytest.mark.parametrize("overrides, kwargs", CASES.values(), ids=CASES.keys())
 def test_write_fit_figures(tmp_path, overrides, kwargs):
     result = fake_fit(**overrides)
+    if kwargs.get("noise_free"):
+        kwargs = dict(kwargs, noise_free=result.pv - 0.02)
+    before = mpl_state()
+    had_pyplot = "matplotlib.pyplot" in sys.modules
     out_dir = tmp_path / "figs" / "loop"  # nested: must be created
     paths = write_fit_figures(result, out_dir, **kwargs)
     check_pngs(paths, out_dir)
-
-
-def test_noise_free_and_short_record(tmp_path):
-    result = fake_fit(n_estimation=100, n_validation=50)
-    n = len(result.pv)
-    result.op, result.pv = result.op[:150], result.pv[:150]
-    result.pv_sim, result.pv_sim_paper = result.pv_sim[:150], result.pv_sim_paper[:150]
-    assert n > 150
-    paths = write_fit_figures(result, tmp_path, validation_start=100, noise_free=result.pv + 0.01)
-    check_pngs(paths, tmp_path)
-
-
-def test_global_matplotlib_state_unchanged(tmp_path):
-    before = mpl_state()
-    had_pyplot = "matplotlib.pyplot" in sys.modules
-    write_fit_figures(fake_fit(S=5.0, J=1.0, S_interval=(4.0, 6.0), J_interval=(0.5, 1.5)),
-                      tmp_path, validation_start=400)
+    # the backend and every rcParam are untouched, and pyplot was not imported
     assert mpl_state() == before
     if not had_pyplot:
         assert "matplotlib.pyplot" not in sys.modules
