@@ -133,22 +133,21 @@ def _r(v, nd=3):
     return None if v is None else round(float(v), nd)
 
 
+def crossing(u, f, level):
+    """OP at which curve `f(u)` crosses `level` (the middle crossing if several)."""
+    s = np.sign(f - level)
+    idx = np.flatnonzero(np.diff(s) != 0)
+    if idx.size == 0:
+        return None
+    i = idx[len(idx) // 2]
+    t = (level - f[i]) / (f[i + 1] - f[i])
+    return u[i] + t * (u[i + 1] - u[i])
+
+
 def _band(u, up, down):
     """Horizontal width of the hysteresis loop at mid-height (% of OP)."""
-    lo = min(up.min(), down.min())
-    hi = max(up.max(), down.max())
-    mid = 0.5 * (lo + hi)
-
-    def cross(f):
-        s = np.sign(f - mid)
-        idx = np.flatnonzero(np.diff(s) != 0)
-        if idx.size == 0:
-            return None
-        i = idx[len(idx) // 2]
-        t = (mid - f[i]) / (f[i + 1] - f[i])
-        return u[i] + t * (u[i + 1] - u[i])
-
-    a, d = cross(up), cross(down)
+    mid = 0.5 * (min(up.min(), down.min()) + max(up.max(), down.max()))
+    a, d = crossing(u, up, mid), crossing(u, down, mid)
     if a is None or d is None:
         return float("nan")
     return float(abs(a - d))

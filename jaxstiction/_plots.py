@@ -11,6 +11,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ._fit import crossing as _crossing
+
 
 DPI = 110
 SIZE = (8.0, 4.5)  # inches; figures with two rows of panels are taller
@@ -71,17 +73,6 @@ def _figure(size=SIZE) -> Figure:
 def _time(result, n=None):
     n = len(result.pv) if n is None else n
     return np.arange(n) * float(result.ts)
-
-
-def _crossing(u, f, level):
-    """OP at which curve `f(u)` crosses `level` (the middle crossing if several)."""
-    s = np.sign(f - level)
-    idx = np.flatnonzero(np.diff(s) != 0)
-    if idx.size == 0:
-        return None
-    i = idx[len(idx) // 2]
-    t = (level - f[i]) / (f[i + 1] - f[i])
-    return u[i] + t * (u[i + 1] - u[i])
 
 
 def _arrow_along(ax, u, f, frac, reverse, color):
