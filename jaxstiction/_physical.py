@@ -17,6 +17,7 @@ from ._blocks import kano, kano_init
 from ._filters import fitness, is_stable, lagged, lfilter, steady_state
 from ._reduce import LowOrder
 from ._relax import _lstsq
+from ._spline import scale_input
 
 
 class PhysicalSettings(eqx.Module):
@@ -44,14 +45,16 @@ class PhysicalSettings(eqx.Module):
     oe_steps: int = eqx.field(static=True, default=40)
     burn_in: int = eqx.field(static=True, default=10)
 
-def _scale(x, lo, hi):
-    return 2.0 * (x - lo) / (hi - lo) - 1.0
+
+def _arx_design(x, y, order: int, delay):
+    """Regressors of $A y = q^{-d} B x + c$: `[-y lags, x lags (delayed), 1]`."""
+    xd = _delay(x, delay)
+    return jnp.concatenate([-lagged(y, order), lagged(xd, order), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
 
 
 def arx_loss(x, y, weights, order: int, delay):
     """Mean squared one-step error of the ARX model $A y = q^{-d}B x$ (LS by QR)."""
-    xd = _delay(x, delay)
-    X = jnp.concatenate([lagged(y, order), lagged(xd, order), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
+    X = _arx_design(x, y, order, delay)
     w = weights * (jnp.arange(y.shape[0]) >= order + 3)
     th = _lstsq(X * w[:, None], y * w, 1e-10)
     return jnp.sum((w * (y - X @ th)) ** 2) / jnp.sum(w)
@@ -94,8 +97,7 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
     through the controller, and a pure output-error fit ($C/D = 1$) is biased.
     Returns the deterministic part (`OEModel`) and the solver result."""
     L = order
-    xd = _delay(x, delay)
-    X = jnp.concatenate([-lagged(y, L), lagged(xd, L), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
+    X = _arx_design(x, y, L, delay)
     w = weights * (jnp.arange(y.shape[0]) >= L + max_delay)
     th = _lstsq(X * w[:, None], y * w, 1e-10)
     a0, b0 = th[:L], th[L : 2 * L]
@@ -140,7 +142,7 @@ def physical_valve(op, S, J, model: OEModel, y0, lo, hi, max_delay: int):
     x0 = (y0 - model.offset) / jnp.where(jnp.abs(gain) > 1e-12, gain, 1e-12)
     x0 = jnp.clip(lo + (x0 + 1.0) * (hi - lo) / 2.0, jnp.min(op) - (hi - lo), jnp.max(op) + (hi - lo))
     state = (x0,) + tuple(kano_init(op[0])[1:])
-    return _scale(kano(op, S, J, state=state), lo, hi)
+    return scale_input(kano(op, S, J, state=state), lo, hi)
 
 
 def models_at(models, i):
@@ -191,7 +193,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
         return (v * jnp.sum(wb) + skipped * var_y) / count
 
     def arx_at(s, j):
-        x = _scale(kano(op, s, j), lo, hi)
+        x = scale_input(kano(op, s, j), lo, hi)
         wb = _burn_in(x, weights, settings.burn_in)
         return jax.vmap(lambda d: charged(arx_loss(x, y, wb, settings.arx_order, d), wb))(delays)
 
@@ -227,7 +229,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     Jf = jnp.minimum(jnp.clip(J2[k] + hj * jnp.tile(rr, settings.final), 0.0, None), Sf)
 
     def fine(s, j):
-        x = _scale(kano(op, s, j), lo, hi)
+        x = scale_input(kano(op, s, j), lo, hi)
         wb = _burn_in(x, weights, settings.burn_in)
         m, res = fit_oe(x, y, wb, settings.order, delay, settings.max_delay, settings.oe_steps)
         v = charged(jnp.sum((wb * (y - m.simulate(x, settings.max_delay))) ** 2) / jnp.sum(wb), wb)
@@ -238,7 +240,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     step = 2.0 / (settings.final - 1)
     # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
     # corrected for residual autocorrelation (output-error residuals are coloured).
-    x = _scale(kano(op, Sf[b], Jf[b]), lo, hi)
+    x = scale_input(kano(op, Sf[b], Jf[b]), lo, hi)
     e = _burn_in(x, weights, settings.burn_in) * (y - models_at(models, b).simulate(x, settings.max_delay))
     rho = jnp.clip(jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2), 0.0, 0.99)
     neff = count * (1 - rho) / (1 + rho)

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._filters import freq_response, is_stable, lfilter
+from ._filters import freq_response, is_stable, lagged, lfilter
 from ._relax import _lstsq
 
 
@@ -176,8 +176,6 @@ def fit_noise_model(v, weights, *, order: int = 1, max_steps=100) -> NoiseModel:
     started from an AR fit."""
     dtype = v.dtype
     # Start: AR(order) by least squares.
-    from ._filters import lagged
-
     V = lagged(v, order) * weights[:, None]
     d0 = -_lstsq(V, v * weights, 1e-10)
 
