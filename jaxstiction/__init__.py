@@ -4,22 +4,33 @@ closed-loop OP/PV data, in JAX. See README.md."""
 import importlib.metadata
 
 from ._blocks import (
-    actuator_lag as actuator_lag,
-    choudhury as choudhury,
-    dead_time as dead_time,
-    deadband as deadband,
-    equal_percentage as equal_percentage,
-    he_stiction as he_stiction,
-    kano as kano,
-    kano_init as kano_init,
-    kano_step as kano_step,
-    quantize as quantize,
-    random_walk as random_walk,
-    rate_limit as rate_limit,
-    sinusoid as sinusoid,
-    travel_limits as travel_limits,
+    AbstractBlock as AbstractBlock,
+    ActuatorLag as ActuatorLag,
+    block_name as block_name,
+    BLOCKS as BLOCKS,
+    Choudhury as Choudhury,
+    Deadband as Deadband,
+    DeadTime as DeadTime,
+    Drift as Drift,
+    EqualPercentage as EqualPercentage,
+    He as He,
+    Kano as Kano,
+    make_block as make_block,
+    Quantiser as Quantiser,
+    RateLimit as RateLimit,
+    run_chain as run_chain,
+    Sinusoid as Sinusoid,
+    TravelLimits as TravelLimits,
 )
 from ._checks import check_loop as check_loop, LoopDataError as LoopDataError
+from ._criteria import score as score, ScoreSettings as ScoreSettings, simulate_scored as simulate_scored
+from ._estimate import (
+    estimate as estimate,
+    LoopFit as LoopFit,
+    min_length as min_length,
+    RESULTS as RESULTS,
+    Settings as Settings,
+)
 from ._filters import (
     fitness as fitness,
     freq_response as freq_response,
@@ -27,18 +38,22 @@ from ._filters import (
     lfilter as lfilter,
     step_response as step_response,
 )
-from ._fit import fit as fit, FitSettings as FitSettings, LoopFit as LoopFit
 from ._hammerstein import (
     CandidateFit as CandidateFit,
     fit_spline_candidates as fit_spline_candidates,
     HammersteinModel as HammersteinModel,
     SplineSettings as SplineSettings,
 )
-from ._io import (
-    find_loop_files as find_loop_files,
-    LoopData as LoopData,
+from ._loop import Loop as Loop, make_loop as make_loop, stack as stack, unstack as unstack
+from ._models import (
+    InitialState as InitialState,
+    LinearProcess as LinearProcess,
+    LoopModel as LoopModel,
+    NoiseModel as NoiseModel,
+    SplineValve as SplineValve,
+)
+from ._nominal import (
     NominalModel as NominalModel,
-    read_loop as read_loop,
     read_nominal as read_nominal,
     simulate_nominal as simulate_nominal,
 )
@@ -47,6 +62,8 @@ from ._physical import (
     PhysicalFit as PhysicalFit,
     PhysicalSettings as PhysicalSettings,
 )
+from ._read import find_loop_files as find_loop_files, loop_name as loop_name, read_loop as read_loop
+from ._read_mat import list_mat_loops as list_mat_loops
 from ._reduce import (
     asymptotic_weight as asymptotic_weight,
     fit_noise_model as fit_noise_model,
@@ -62,8 +79,9 @@ from ._relax import (
     RelaxProblem as RelaxProblem,
     RelaxSolution as RelaxSolution,
 )
+from ._report import fit as fit, FitReport as FitReport, report as report
 from ._scenarios import make_scenario as make_scenario, Scenario as Scenario, SCENARIOS as SCENARIOS
-from ._simulate import LoopConfig as LoopConfig, LoopRecord as LoopRecord, simulate_loop as simulate_loop
+from ._simulate import Experiment as Experiment, LoopRecord as LoopRecord, simulate_loop as simulate_loop
 from ._spline import (
     direction as direction,
     hysteresis_regressors as hysteresis_regressors,

@@ -1,355 +1,424 @@
-"""Valve and loop physics blocks (DESIGN §3), each a pure JAX function.
+r"""The block library: valve, actuator and sensor physics as composable Modules.
 
-Every stateful block is written as a one-sample `step(state, u, params) -> (state, out)`
-usable inside `lax.scan`, plus a whole-signal wrapper. All valve quantities are in %
-of span. Parameters are JAX scalars so the wrappers can be `vmap`ped over them.
+Every block is an `eqx.Module` whose fields are its parameters, with
+
+- `init(u0) -> state`: the state of a block at rest at input `u0`;
+- `step(state, u) -> (state, out)`: one sample, usable inside `lax.scan`;
+- `initial_states(u0, count) -> states`: a batch (leading axis) of plausible
+  initial states when the state at the start of a record is unknown (a stuck valve
+  may be resting anywhere in its band, moving up or down); the default is `init(u0)`;
+- `__call__(u, state=None)`: the block run over a whole signal.
+
+Blocks on the **input side** sit between the controller output OP and the process
+input (order in a real loop: actuator lag / rate limit → stiction or deadband →
+travel limits → inherent characteristic → dead time). Blocks on the **output side**
+act on the process output (`side = "output"`): external sinusoid, drift,
+sensor quantisation. All valve quantities are in % of span.
+
+[`jaxstiction.BLOCKS`][] maps each name to its class; [`jaxstiction.make_block`][]
+builds one from a name and parameters (as in a nominal-model file).
 """
 
-import functools as ft
+from __future__ import annotations
 
+from typing import ClassVar
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, Float
 
 
-def _inexact(x) -> Array:
-    """`x` as a JAX array, cast to the default float dtype if it is not inexact.
-
-    (Integer inputs such as a staircase of whole percents must not truncate `S`, `J`.)
-    """
+def _f(x) -> Array:
+    """A parameter as an inexact JAX array (integers would truncate S, J)."""
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.inexact):
         x = x.astype(jnp.result_type(float))
     return x
 
 
-@ft.partial(jax.jit, static_argnums=0)
-def _scan_block(step, state, u, *params):
-    """Run a one-sample `step(state, u_t, *params) -> (state, out)` over a signal.
+class AbstractBlock(eqx.Module):
+    """A block of the loop: parameters are fields; `init`/`step` run it in `lax.scan`."""
 
-    Jitted with the (module-level) `step` static only so that eager calls of the
-    wrappers reuse one compilation per step and shape instead of re-tracing a fresh
-    closure each time; inside a caller's `jit`/`vmap` it is simply inlined.
+    side: ClassVar[str] = "input"
+
+    def init(self, u0):
+        """State of the block at rest at input `u0`."""
+        raise NotImplementedError
+
+    def step(self, state, u):
+        """One sample: `(new_state, output)`."""
+        raise NotImplementedError
+
+    def initial_states(self, u0, count: int):
+        """A batch of candidate initial states (leading axis) for an unknown start."""
+        return jax.tree.map(lambda t: jnp.asarray(t)[None], self.init(u0))
+
+    def __call__(self, u: Float[Array, " time"], state=None) -> Float[Array, " time"]:
+        """The block's output over a whole signal `u`, from `state` (default: at rest
+        at `u[0]`)."""
+        u = _f(u)
+        if state is None:
+            state = self.init(u[0])
+        _, y = jax.lax.scan(lambda s, ut: self.step(s, ut), state, u)
+        return y
+
+
+# ---------------------------------------------------------------------------- stiction
+
+
+class Kano(AbstractBlock):
+    r"""Kano's (2004) stiction model: `S` deadband + stickband, `J` slip jump (% span).
+
+    State `(y, us, stp, d, u_prev, du_prev)`: valve position, input where the valve
+    stopped, 1 when stuck, direction (+1 up / −1 down), previous input and move::
+
+        du = u - u_prev
+        if du*du_prev <= 0 and stp == 0: us = u_prev; stp = 1   # stops or reverses
+        if stp == 0:              y = u - d*(S-J)/2             # moving
+        elif -d*(u - us) > S:     d = -d; y = u - d*(S-J)/2; stp = 0
+        elif  d*(u - us) > J:     y = u - d*(S-J)/2; stp = 0
+        else:                     y unchanged                   # stuck
     """
-    _, y = jax.lax.scan(lambda s, ut: step(s, ut, *params), state, u)
-    return y
+
+    S: Float[Array, ""] = eqx.field(converter=_f)
+    J: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        u0 = jnp.asarray(u0)
+        one = jnp.ones_like(u0)
+        return (u0, u0, one, one, u0, jnp.zeros_like(u0))
+
+    def step(self, state, u):
+        S, J = self.S, self.J
+        y, us, stp, d, u_prev, du_prev = state
+        du = u - u_prev
+        stops = (du * du_prev <= 0) & (stp == 0)
+        us = jnp.where(stops, u_prev, us)
+        stp = jnp.where(stops, 1.0, stp)
+        moving = stp == 0
+        reverse = (~moving) & (-d * (u - us) > S)
+        same = (~moving) & (~reverse) & (d * (u - us) > J)
+        d = jnp.where(reverse, -d, d)
+        go = moving | reverse | same
+        y = jnp.where(go, u - d * (S - J) / 2, y)
+        stp = jnp.where(reverse | same, 0.0, stp)
+        return (y, us, stp, d, u, du), y
+
+    def initial_states(self, u0, count: int):
+        # Stuck at u0 (the held position itself is a free level, see LoopModel), having
+        # stopped at `us` anywhere in [u0 - S, u0 + S], last travel up or down; plus the
+        # two moving states. Together these give every possible first slip.
+        u0 = jnp.asarray(u0)
+        r = jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype)
+        us = jnp.concatenate([u0 + self.S * r, u0 + self.S * r, u0[None], u0[None]])
+        d = jnp.concatenate([jnp.ones(count), -jnp.ones(count), jnp.ones(1), -jnp.ones(1)]).astype(u0.dtype)
+        stp = jnp.concatenate([jnp.ones(2 * count), jnp.zeros(2)]).astype(u0.dtype)
+        k = us.shape[0]
+        y = jnp.full((k,), u0)
+        return (y, us, stp, d, jnp.full((k,), u0), jnp.zeros((k,), u0.dtype))
 
 
-def kano_init(u0):
-    """Initial Kano state for a valve resting (stuck) at input `u0`.
+class Choudhury(AbstractBlock):
+    r"""Choudhury, Thornhill & Shah (2005) two-parameter stiction model (`S`, `J`).
 
-    State is `(y, us, stp, d, u_prev, du_prev)`: valve position, input where the valve
-    stopped, 1 when stuck, direction (+1 up / -1 down), previous input and previous
-    move.
+    The valve sticks when the input velocity changes sign or becomes zero
+    ($x_{ss} = x(t-1)$); a stuck valve slips when $|x - x_{ss}|$ exceeds `J` (input
+    keeps the direction of the last travel) or `S` (input reverses); a moving valve
+    sits at $x - \mathrm{sign}(v)(S-J)/2$. After the first stick event it gives the
+    same output as [`jaxstiction.Kano`][]. State `(y, x_ss, stuck, v_old,
+    direction, x_prev)`; direction 0 means unknown (first break-away needs `S`).
     """
-    u0 = jnp.asarray(u0)
-    one = jnp.ones_like(u0)
-    return (u0, u0, one, one, u0, jnp.zeros_like(u0))
+
+    S: Float[Array, ""] = eqx.field(converter=_f)
+    J: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        u0 = jnp.asarray(u0)
+        zero = jnp.zeros_like(u0)
+        return (u0, u0, jnp.ones_like(u0), zero, zero, u0)
+
+    def step(self, state, x):
+        S, J = self.S, self.J
+        y, x_ss, stuck, v_old, direction, x_prev = state
+        v_new = x - x_prev
+        sgn = jnp.sign(v_new)
+        stick = (stuck == 0) & (sgn != jnp.sign(v_old))
+        x_ss = jnp.where(stick, x_prev, x_ss)
+        stuck = jnp.where(stick, 1.0, stuck)
+        disp = x - x_ss
+        band = jnp.where(jnp.sign(disp) == direction, J, S)
+        slip = (stuck == 1) & (jnp.abs(disp) > band)
+        move = (stuck == 0) | slip
+        y = jnp.where(move, x - sgn * (S - J) / 2, y)
+        direction = jnp.where(move, sgn, direction)
+        stuck = jnp.where(slip, 0.0, stuck)
+        return (y, x_ss, stuck, v_new, direction, x), y
+
+    def initial_states(self, u0, count: int):
+        u0 = jnp.asarray(u0)
+        r = jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype)
+        xss = jnp.concatenate([u0 + self.S * r, u0 + self.S * r])
+        direction = jnp.concatenate([jnp.ones(count), -jnp.ones(count)]).astype(u0.dtype)
+        k = xss.shape[0]
+        return (jnp.full((k,), u0), xss, jnp.ones((k,), u0.dtype), jnp.zeros((k,), u0.dtype), direction,
+                jnp.full((k,), u0))
 
 
-def kano_step(state, u, S, J):
-    """One sample of Kano's (2004) stiction model; transcription of DESIGN §3.
+class He(AbstractBlock):
+    r"""He, Wang, Pottmann & Qin (2007) semi-physical stiction model, in Kano's terms:
+    static band $f_s = (S + J)/2$, kinetic band $f_d = (S - J)/2$.
 
-    **Arguments:**
-
-    - `state`: the tuple from [`jaxstiction.kano_init`][] or a previous step.
-    - `u`: controller output at this sample (% of span).
-    - `S`: deadband + stickband (% of span).
-    - `J`: slip jump (% of span).
-
-    **Returns:** `(new_state, valve_position)`.
+    The residual force $u_r$ accumulates input moves; when $|u_r| > f_s$ the valve
+    slips to $y + u_r - \mathrm{sign}(u_r) f_d$ and $u_r = \mathrm{sign}(u_r) f_d$.
+    It equals Kano when $J = 0$ or when every move while travelling exceeds $J$; it
+    re-sticks at low velocity where Kano keeps moving. State `(y, u_prev, u_r)`.
     """
-    y, us, stp, d, u_prev, du_prev = state
-    du = u - u_prev
-    stops = (du * du_prev <= 0) & (stp == 0)
-    us = jnp.where(stops, u_prev, us)
-    stp = jnp.where(stops, 1.0, stp)
-    moving = stp == 0
-    reverse = (~moving) & (-d * (u - us) > S)
-    same = (~moving) & (~reverse) & (d * (u - us) > J)
-    d = jnp.where(reverse, -d, d)
-    y_move = u - d * (S - J) / 2
-    go = moving | reverse | same
-    y = jnp.where(go, y_move, y)
-    stp = jnp.where(reverse | same, 0.0, stp)
-    return (y, us, stp, d, u, du), y
+
+    S: Float[Array, ""] = eqx.field(converter=_f)
+    J: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        u0 = jnp.asarray(u0)
+        return (u0, u0, jnp.zeros_like(u0))
+
+    def step(self, state, u):
+        fs, fd = (self.S + self.J) / 2, (self.S - self.J) / 2
+        y, u_prev, u_r = state
+        u_r = u_r + (u - u_prev)
+        slip = jnp.abs(u_r) > fs
+        s = jnp.sign(u_r)
+        y = jnp.where(slip, y + u_r - s * fd, y)
+        u_r = jnp.where(slip, s * fd, u_r)
+        return (y, u, u_r), y
+
+    def initial_states(self, u0, count: int):
+        u0 = jnp.asarray(u0)
+        fs = (self.S + self.J) / 2
+        ur = fs * jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype)
+        return (jnp.full((count,), u0), jnp.full((count,), u0), ur)
 
 
-def kano(u: Float[Array, " time"], S, J, *, state=None) -> Float[Array, " time"]:
-    """Valve position from controller output through Kano's stiction model.
+class Deadband(AbstractBlock):
+    r"""Deadband / backlash of total `width` (a play operator):
+    $y(t) = \mathrm{clip}(y(t-1),\ u(t) - w/2,\ u(t) + w/2)$. Stiction with no slip
+    jump: after the first stop it equals [`jaxstiction.Kano`][] with `S = width`,
+    `J = 0`. State `(y,)`, at rest centred on the input."""
 
-    The valve starts stuck at `u[0]` unless `state` is given. `S`, `J` may be traced
-    (e.g. `vmap` over a grid of them).
-    """
-    u = _inexact(u)
-    S = jnp.asarray(S, u.dtype)
-    J = jnp.asarray(J, u.dtype)
-    if state is None:
-        state = kano_init(u[0])
-    return _scan_block(kano_step, state, u, S, J)
+    width: Float[Array, ""] = eqx.field(converter=_f)
 
+    def init(self, u0):
+        return (jnp.asarray(u0),)
 
-# --------------------------------------------------------------------------------------
-# Choudhury, Thornhill & Shah (2005)
-# --------------------------------------------------------------------------------------
+    def step(self, state, u):
+        (y,) = state
+        y = jnp.clip(y, u - self.width / 2, u + self.width / 2)
+        return (y,), y
 
-
-def choudhury_init(u0):
-    """Initial Choudhury state for a valve resting (stuck) at input `u0`.
-
-    State is `(y, x_ss, stuck, v_old, direction, x_prev)`: valve position, input where
-    the valve stuck, 1 when stuck, previous input velocity, direction of the last
-    travel (`0` = unknown, so the first break-away needs the full `S` either way) and
-    previous input.
-    """
-    u0 = jnp.asarray(u0)
-    zero = jnp.zeros_like(u0)
-    return (u0, u0, jnp.ones_like(u0), zero, zero, u0)
+    def initial_states(self, u0, count: int):
+        u0 = jnp.asarray(u0)
+        return (u0 + self.width / 2 * jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype),)
 
 
-def choudhury_step(state, x, S, J):
-    """One sample of the Choudhury, Thornhill & Shah (2005) two-parameter model.
-
-    Follows the published flow chart: the valve sticks when the input velocity
-    $v_{new} = x(t) - x(t-1)$ changes sign or becomes zero ($x_{ss} = x(t-1)$); a
-    stuck valve slips when $|x - x_{ss}|$ exceeds the slip jump `J` (input keeps the
-    direction the valve travelled in) or the deadband plus stickband `S` (input
-    reverses); a moving or slipping valve sits at $x - \\mathrm{sign}(v_{new})(S-J)/2$.
-    The direction test uses the direction of the last travel (the 2008 book form),
-    which is what makes the model well behaved on noisy inputs.
-
-    **Arguments:**
-
-    - `state`: the tuple from [`jaxstiction.choudhury_init`][] or a previous step.
-    - `x`: controller output at this sample (% of span).
-    - `S`: deadband + stickband (% of span).
-    - `J`: slip jump (% of span).
-
-    **Returns:** `(new_state, valve_position)`.
-    """
-    y, x_ss, stuck, v_old, direction, x_prev = state
-    v_new = x - x_prev
-    sgn = jnp.sign(v_new)
-    stick = (stuck == 0) & (sgn != jnp.sign(v_old))
-    x_ss = jnp.where(stick, x_prev, x_ss)
-    stuck = jnp.where(stick, 1.0, stuck)
-    disp = x - x_ss
-    band = jnp.where(jnp.sign(disp) == direction, J, S)
-    slip = (stuck == 1) & (jnp.abs(disp) > band)
-    move = (stuck == 0) | slip
-    y = jnp.where(move, x - sgn * (S - J) / 2, y)
-    direction = jnp.where(move, sgn, direction)
-    stuck = jnp.where(slip, 0.0, stuck)
-    return (y, x_ss, stuck, v_new, direction, x), y
+# ------------------------------------------------------------------- other input blocks
 
 
-def choudhury(u: Float[Array, " time"], S, J, *, state=None) -> Float[Array, " time"]:
-    """Valve position from controller output through Choudhury's (2005) stiction model.
+class ActuatorLag(AbstractBlock):
+    r"""First-order actuator $x(t) = a\,x(t-1) + (1 - a)\,u(t)$, pole `a` in [0, 1)
+    ($a = e^{-T_s/\tau}$; 0 passes the input through). At rest at the input."""
 
-    The valve starts stuck at `u[0]` with unknown travel direction unless `state` is
-    given. After the first stick event the output equals [`jaxstiction.kano`][] with the
-    same `S`, `J` (Kano's model is the stochastic-input-safe form of this one); they can
-    differ only before it, because Kano assumes an initial upward travel.
-    """
-    u = _inexact(u)
-    S = jnp.asarray(S, u.dtype)
-    J = jnp.asarray(J, u.dtype)
-    if state is None:
-        state = choudhury_init(u[0])
-    return _scan_block(choudhury_step, state, u, S, J)
+    a: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        return jnp.asarray(u0)
+
+    def step(self, state, u):
+        x = self.a * state + (1 - self.a) * u
+        return x, x
 
 
-# --------------------------------------------------------------------------------------
-# He, Wang, Pottmann & Qin (2007)
-# --------------------------------------------------------------------------------------
+class RateLimit(AbstractBlock):
+    """Slew-rate limit: the output moves towards the input by at most `max_rate` per
+    sample; where the limit is not active the output equals the input exactly."""
+
+    max_rate: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        return jnp.asarray(u0)
+
+    def step(self, state, u):
+        du = u - state
+        y = jnp.where(jnp.abs(du) > self.max_rate, state + jnp.sign(du) * self.max_rate, u)
+        return y, y
 
 
-def he_init(u0):
-    """Initial He state: valve at `u0`, no residual force; `(y, u_prev, u_r)`."""
-    u0 = jnp.asarray(u0)
-    return (u0, u0, jnp.zeros_like(u0))
-
-
-def he_step(state, u, fs, fd):
-    """One sample of He et al.'s (2007) semi-physical two-parameter stiction model.
-
-    The residual force $u_r$ accumulates input moves, $u_r \\leftarrow u_r + u(t) -
-    u(t-1)$; if $|u_r| > f_s$ the valve slips to $y + u_r - \\mathrm{sign}(u_r) f_d$ and
-    $u_r = \\mathrm{sign}(u_r) f_d$, otherwise it stays.
-
-    **Arguments:**
-
-    - `state`: the tuple from [`jaxstiction.he_init`][] or a previous step.
-    - `u`: controller output at this sample (% of span).
-    - `fs`: static friction band (% of span).
-    - `fd`: kinetic friction band (% of span).
-
-    **Returns:** `(new_state, valve_position)`.
-    """
-    y, u_prev, u_r = state
-    u_r = u_r + (u - u_prev)
-    slip = jnp.abs(u_r) > fs
-    s = jnp.sign(u_r)
-    y = jnp.where(slip, y + u_r - s * fd, y)
-    u_r = jnp.where(slip, s * fd, u_r)
-    return (y, u, u_r), y
-
-
-def he_stiction(
-    u: Float[Array, " time"], fs, fd, *, state=None
-) -> Float[Array, " time"]:
-    """Valve position from controller output through He et al.'s (2007) model.
-
-    Maps to Kano's parameters as $S = f_s + f_d$, $J = f_s - f_d$: break-away, reversal
-    band and the moving offset $(S-J)/2 = f_d$ are the same. The models differ in one
-    respect: He's valve re-sticks whenever the input moves by less than
-    $f_s - f_d = J$ in one sample (stick-slip at low velocity), while Kano's keeps
-    moving until the input reverses or stops. So He equals Kano (after both have
-    moved once) when $J = 0$, or when every input move while travelling exceeds $J$
-    (e.g. staircases with steps larger than $J$). The valve starts at `u[0]`.
-    """
-    u = _inexact(u)
-    fs = jnp.asarray(fs, u.dtype)
-    fd = jnp.asarray(fd, u.dtype)
-    if state is None:
-        state = he_init(u[0])
-    return _scan_block(he_step, state, u, fs, fd)
-
-
-# --------------------------------------------------------------------------------------
-# Deadband / backlash
-# --------------------------------------------------------------------------------------
-
-
-def deadband_init(u0):
-    """Initial backlash state: valve centred on the input `u0`. State is `(y,)`."""
-    return (jnp.asarray(u0),)
-
-
-def deadband_step(state, u, width):
-    """One sample of a deadband (backlash, play operator) of total `width`.
-
-    $y(t) = \\mathrm{clip}(y(t-1),\\ u(t) - w/2,\\ u(t) + w/2)$: the valve follows the
-    input at a lag of $w/2$ and stays put while a reversal is inside the band.
-
-    **Returns:** `(new_state, valve_position)`.
-    """
-    (y,) = state
-    y = jnp.clip(y, u - width / 2, u + width / 2)
-    return (y,), y
-
-
-def deadband(u: Float[Array, " time"], width, *, state=None) -> Float[Array, " time"]:
-    """Valve position through a deadband / backlash of total `width` (% of span).
-
-    Stiction with no slip jump: after the first stop it equals
-    [`jaxstiction.kano`][] with `S = width`, `J = 0`. The valve starts centred on `u[0]`
-    (Kano instead starts on the upward branch).
-    """
-    u = _inexact(u)
-    width = jnp.asarray(width, u.dtype)
-    if state is None:
-        state = deadband_init(u[0])
-    return _scan_block(deadband_step, state, u, width)
-
-
-# --------------------------------------------------------------------------------------
-# Other blocks of the chain
-# --------------------------------------------------------------------------------------
-
-
-def dead_time(x: Float[Array, " time"], k: int) -> Float[Array, " time"]:
-    """Delay a signal by `k` whole samples ($q^{-k}$), padding the start with `x[0]`.
-
-    `k` is a static non-negative Python int (it fixes the shape of the padding).
-    """
-    if isinstance(k, bool) or not isinstance(k, int) or k < 0:
-        raise ValueError(
-            f"`k` must be a non-negative Python int (static), got {k!r}; pass e.g. 2."
-        )
-    x = jnp.asarray(x)
-    n = x.shape[0]
-    if k == 0:
-        return x
-    k = min(k, n)
-    return jnp.concatenate([jnp.full((k,), x[0], x.dtype), x[: n - k]])
-
-
-def equal_percentage(x: Float[Array, "*shape"], R) -> Float[Array, "*shape"]:
-    """Inherent equal-percentage valve characteristic, in % of span.
-
-    $f(x) = 100\\,(R^{x/100} - 1)/(R - 1)$, with `x` the stem position in % of span and
-    rangeability `R` (typically 20–50). `R = 1` is taken as its limit, the linear valve.
-    """
-    x = _inexact(x)
-    R = jnp.asarray(R, x.dtype)
-    lin = R == 1
-    R_safe = jnp.where(lin, 2.0, R)
-    f = (R_safe ** (x / 100) - 1) / (R_safe - 1) * 100
-    return jnp.where(lin, x, f)
-
-
-def travel_limits(x: Float[Array, "*shape"], lo, hi) -> Float[Array, "*shape"]:
+class TravelLimits(AbstractBlock):
     """Mechanical travel limits of the stem: `clip(x, lo, hi)` (% of span)."""
-    return jnp.clip(x, lo, hi)
+
+    lo: Float[Array, ""] = eqx.field(converter=_f, default=-jnp.inf)
+    hi: Float[Array, ""] = eqx.field(converter=_f, default=jnp.inf)
+
+    def init(self, u0):
+        return ()
+
+    def step(self, state, u):
+        return state, jnp.clip(u, self.lo, self.hi)
 
 
-def actuator_lag_step(x_prev, u, a):
-    """One sample of the first-order actuator lag; returns `(state, output)`."""
-    x = a * x_prev + (1 - a) * u
-    return x, x
+class EqualPercentage(AbstractBlock):
+    r"""Inherent equal-percentage characteristic $100\,(R^{x/100} - 1)/(R - 1)$ with
+    rangeability `R` (20–50 typically; `R = 1` is the linear valve)."""
+
+    R: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        return ()
+
+    def step(self, state, x):
+        lin = self.R == 1
+        R = jnp.where(lin, 2.0, self.R)
+        f = (R ** (x / 100) - 1) / (R - 1) * 100
+        return state, jnp.where(lin, x, f)
 
 
-def actuator_lag(u: Float[Array, " time"], a) -> Float[Array, " time"]:
-    """First-order actuator lag $x_a(t) = a\\,x_a(t-1) + (1 - a)\\,u(t)$.
+class DeadTime(AbstractBlock):
+    """Dead time of `k` whole samples ($q^{-k}$); `k` is static (it sets the state
+    length). At rest, the delay line holds the input."""
 
-    `a` in $[0, 1)$ is the pole ($a = e^{-T_s/\\tau}$); the actuator starts at rest at
-    `u[0]` (so `x_a(0) = u[0]`). `a = 0` passes `u` through unchanged.
+    k: int = eqx.field(static=True)
+
+    def __check_init__(self):
+        if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 0:
+            raise ValueError(f"`k` must be a non-negative Python int, got {self.k!r}; pass e.g. 2.")
+
+    def init(self, u0):
+        return jnp.full((self.k,), u0, jnp.asarray(u0).dtype)
+
+    def step(self, state, u):
+        if self.k == 0:
+            return state, u
+        return jnp.concatenate([state[1:], jnp.asarray(u)[None]]), state[0]
+
+
+# ------------------------------------------------------------------------ output side
+
+
+class Sinusoid(AbstractBlock):
+    r"""External oscillation added at the process output:
+    $A \sin(2\pi t / P + \phi)$, `period` $P$ in samples, `phase` in radians."""
+
+    side: ClassVar[str] = "output"
+    amplitude: Float[Array, ""] = eqx.field(converter=_f)
+    period: Float[Array, ""] = eqx.field(converter=_f)
+    phase: Float[Array, ""] = eqx.field(converter=_f, default=0.0)
+
+    def init(self, u0):
+        return jnp.zeros_like(jnp.asarray(u0))
+
+    def step(self, t, y):
+        return t + 1, y + self.amplitude * jnp.sin(2 * jnp.pi * t / self.period + self.phase)
+
+
+class Drift(AbstractBlock):
+    r"""Slow drift added at the process output: a Gaussian random walk from 0,
+    $w(t) = w(t-1) + \sigma\,\epsilon(t)$ ($w(0) = 0$), drawn from `key`."""
+
+    side: ClassVar[str] = "output"
+    step_std: Float[Array, ""] = eqx.field(converter=_f)
+    key: Array = eqx.field(default_factory=lambda: jr.key_data(jr.key(0)))
+
+    def init(self, u0):
+        z = jnp.zeros_like(jnp.asarray(u0))
+        return (z, z)
+
+    def step(self, state, y):
+        w, t = state
+        eps = jr.normal(jr.fold_in(jr.wrap_key_data(self.key), t.astype(jnp.int32)), (), w.dtype)
+        w = w + jnp.where(t > 0, self.step_std * eps, 0.0)
+        return (w, t + 1), y + w
+
+
+class Quantiser(AbstractBlock):
+    r"""Sensor quantisation $q\,\mathrm{round}(y/q)$ (ties to even)."""
+
+    side: ClassVar[str] = "output"
+    step_size: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        return ()
+
+    def step(self, state, y):
+        return state, self.step_size * jnp.round(y / self.step_size)
+
+
+BLOCKS: dict[str, type[AbstractBlock]] = {
+    "kano": Kano,
+    "choudhury": Choudhury,
+    "he": He,
+    "deadband": Deadband,
+    "actuator_lag": ActuatorLag,
+    "rate_limit": RateLimit,
+    "travel_limits": TravelLimits,
+    "equal_percentage": EqualPercentage,
+    "dead_time": DeadTime,
+    "sinusoid": Sinusoid,
+    "drift": Drift,
+    "quantiser": Quantiser,
+}
+
+
+def block_name(block: AbstractBlock) -> str:
+    """The registry name of `block` (its class name in lower case if unregistered)."""
+    for name, cls in BLOCKS.items():
+        if type(block) is cls:
+            return name
+    return type(block).__name__.lower()
+
+
+def make_block(name: str, **params) -> AbstractBlock:
+    """Build a block of the library from its registry name and parameters,
+    e.g. `make_block("kano", S=3.0, J=1.0)`.
+
+    **Raises:** `ValueError` for an unknown name or wrong parameters (one line).
     """
-    u = _inexact(u)
-    a = jnp.asarray(a, u.dtype)
-    return _scan_block(actuator_lag_step, u[0], u, a)
+    cls = BLOCKS.get(name)
+    if cls is None:
+        raise ValueError(f"unknown block {name!r}; known blocks: {', '.join(BLOCKS)}")
+    try:
+        return cls(**params)
+    except TypeError as e:
+        raise ValueError(f"block {name!r}: {e}") from None
 
 
-def rate_limit_step(y_prev, u, max_rate):
-    """One sample of the rate limiter; returns `(state, output)`."""
-    du = u - y_prev
-    y = jnp.where(jnp.abs(du) > max_rate, y_prev + jnp.sign(du) * max_rate, u)
-    return y, y
+def run_chain(blocks, u, states=None):
+    """Run a chain of blocks over a signal; returns the output of the last block.
 
-
-def rate_limit(u: Float[Array, " time"], max_rate) -> Float[Array, " time"]:
-    """Slew-rate limit: the output moves towards `u` by at most `max_rate` per sample.
-
-    Starts at `u[0]`; where the limit is not active the output equals `u` exactly.
+    `states` is a tuple with one initial state per block (default: each at rest at
+    its own first input).
     """
-    u = _inexact(u)
-    max_rate = jnp.asarray(max_rate, u.dtype)
-    return _scan_block(rate_limit_step, u[0], u, max_rate)
+    x = _f(u)
+    if not blocks:
+        return x
 
+    def init_all(x0):
+        out, v = [], x0
+        for b in blocks:
+            s = b.init(v)
+            out.append(s)
+            _, v = b.step(s, v)
+        return tuple(out)
 
-def quantize(y: Float[Array, "*shape"], q) -> Float[Array, "*shape"]:
-    """Sensor quantisation $q\\,\\mathrm{round}(y/q)$ (ties to even, as NumPy)."""
-    y = _inexact(y)
-    return q * jnp.round(y / q)
+    if states is None:
+        states = init_all(x[0])
 
+    def step(ss, ut):
+        new = []
+        v = ut
+        for b, s in zip(blocks, ss):
+            s, v = b.step(s, v)
+            new.append(s)
+        return tuple(new), v
 
-def sinusoid(n: int, amplitude, period, phase=0.0) -> Float[Array, " time"]:
-    """Sinusoidal disturbance $A \\sin(2\\pi t/P + \\phi)$ for $t = 0, \\ldots, n-1$.
-
-    `period` is in samples and `phase` in radians; the result has the float dtype of
-    the parameters (the default float dtype for Python scalars).
-    """
-    t = jnp.arange(n)
-    return amplitude * jnp.sin(2 * jnp.pi * t / period + phase)
-
-
-def random_walk(key: PRNGKeyArray, n: int, step_std) -> Float[Array, " time"]:
-    """Slow drift: a Gaussian random walk starting at 0 with step std `step_std`.
-
-    $w(0) = 0$, $w(t) = w(t-1) + \\sigma\\,\\epsilon(t)$, $\\epsilon \\sim N(0, 1)$.
-    """
-    dtype = jnp.result_type(step_std, 1.0)
-    eps = jr.normal(key, (n,), dtype).at[0].set(0)
-    return jnp.cumsum(step_std * eps)
+    _, y = jax.lax.scan(step, tuple(states), x)
+    return y

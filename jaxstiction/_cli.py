@@ -1,4 +1,4 @@
-"""Command line: `jaxstiction demo | fit | screen` (DESIGN §6).
+"""Command line: `jaxstiction demo | fit | screen`.
 
 Every command takes `--json` (exactly one JSON object on stdout, nothing else there)
 and `--out DIR` (pictures and a report). Progress and messages go to stderr. Bad input
@@ -77,10 +77,12 @@ def _summary(r) -> str:
 
 
 def cmd_demo(args):
+    import jax.numpy as jnp
     import numpy as np
 
+    from ._criteria import simulate_scored
     from ._filters import fitness
-    from ._fit import fit
+    from ._report import fit
     from ._scenarios import make_scenario
 
     _log(f"demo: simulating the paper_sim scenario (seed {args.seed}) ...")
@@ -88,11 +90,14 @@ def cmd_demo(args):
     est, val = sc.estimation, sc.validation
     _log("demo: fitting (the first run compiles; a few minutes on 2 cores) ...")
     t0 = time.time()
-    r = fit(np.asarray(est.op), np.asarray(est.pv), ts=float(est.ts), validate=0.0, name="paper_sim")
+    r = fit(np.asarray(est.op), np.asarray(est.pv), ts=1.0, validate=0.0, name="paper_sim")
     _log(f"demo: fitted in {time.time() - t0:.1f} s")
     pv, clean = np.asarray(val.pv), np.asarray(val.pv_clean)
-    sim = r.predict(np.asarray(val.op), pv0=float(pv[0]))
-    sim_paper = r.predict(np.asarray(val.op), which="paper")
+    # Scored as on real data: the initial state is estimated from the opening samples
+    # of the measured validation PV; the noise-free PV is only compared against.
+    whole = jnp.ones_like(val.op)
+    sim = np.asarray(simulate_scored(r.fit.model, val.op, val.pv, whole)[0])
+    sim_paper = np.asarray(simulate_scored(r.fit.paper, val.op, val.pv, whole)[0])
 
     def f(a, b):
         return float(fitness(a, b))
@@ -111,8 +116,8 @@ def cmd_demo(args):
             "J": r.J,
             "S_interval": r.S_interval,
             "J_interval": r.J_interval,
-            "true_S": sc.truth.get("S"),
-            "true_J": sc.truth.get("J"),
+            "true_S": float(sc.plant.chain[0].S),
+            "true_J": float(sc.plant.chain[0].J),
         },
         "fit": r.to_json(),
     }
@@ -146,13 +151,17 @@ def cmd_demo(args):
 
 
 def cmd_fit(args):
-    from ._fit import fit
-    from ._io import read_loop
+    import numpy as np
+
+    from ._read import loop_name, read_loop
+    from ._report import fit
 
     loop = read_loop(args.file, ts=args.ts, name=args.name)
-    _log(f"fit: {loop.name}: {loop.op.shape[0]} samples, Ts = {loop.ts:g} s; fitting ...")
+    name = args.name if args.name is not None else loop_name(args.file)
+    op, pv, ts = np.asarray(loop.op), np.asarray(loop.pv), float(loop.ts)
+    _log(f"fit: {name}: {op.shape[0]} samples, Ts = {ts:g} s; fitting ...")
     t0 = time.time()
-    r = fit(loop.op, loop.pv, ts=loop.ts, validate=args.validate, name=loop.name)
+    r = fit(op, pv, ts=ts, validate=args.validate, name=name)
     _log(f"fit: done in {time.time() - t0:.1f} s")
     _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
     _emit(args, r.to_json(), _summary(r))
@@ -160,9 +169,11 @@ def cmd_fit(args):
 
 
 def cmd_screen(args):
+    import numpy as np
+
     from ._checks import LoopDataError
-    from ._fit import fit
-    from ._io import find_loop_files, read_loop
+    from ._read import find_loop_files, loop_name, read_loop
+    from ._report import fit
 
     files = find_loop_files(args.paths)
     loops = []
@@ -171,7 +182,8 @@ def cmd_screen(args):
         entry = {"name": path.stem, "file": str(path)}
         try:
             loop = read_loop(path, ts=args.ts)
-            r = fit(loop.op, loop.pv, ts=loop.ts, validate=args.validate, name=loop.name)
+            r = fit(np.asarray(loop.op), np.asarray(loop.pv), ts=float(loop.ts), validate=args.validate,
+                    name=loop_name(path))
             band = r.band_percent
             entry.update(
                 status="ok",
@@ -228,12 +240,36 @@ def build_parser():
     return p
 
 
+def _compilation_cache():
+    """Persistent XLA compilation cache in the user's cache folder, so a second run of
+    the same shapes in a new process does not recompile. `JAXSTICTION_CACHE=off`
+    turns it off; `JAXSTICTION_CACHE=DIR` puts it elsewhere."""
+    import os
+
+    import jax
+
+    where = os.environ.get("JAXSTICTION_CACHE", "")
+    if where.lower() in ("off", "0", "no", "false"):
+        return
+    if not where:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        where = os.path.join(base, "jaxstiction", "xla")
+    try:
+        os.makedirs(where, exist_ok=True)
+    except OSError:
+        return
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import jax
 
     # The application (not the library) chooses float64, recommended for identification.
     jax.config.update("jax_enable_x64", True)
+    _compilation_cache()
     from ._checks import LoopDataError
 
     try:

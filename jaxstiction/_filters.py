@@ -5,6 +5,7 @@ Polynomials are coefficient arrays from $q^0$: `b = [b0, b1, ...]`, `a = [1, a1,
 
 import jax
 import jax.numpy as jnp
+import lineax as lx
 from jaxtyping import Array, Float
 
 
@@ -95,3 +96,21 @@ def fitness(y, yhat, mask=None):
     num = jnp.sqrt(jnp.sum(mask * (y - yhat) ** 2))
     den = jnp.sqrt(jnp.sum(mask * (y - mean) ** 2))
     return 100.0 * (1.0 - num / den)
+
+
+def lstsq(M, v, ridge=1e-14):
+    """Least squares $\\min_\\theta \\lVert M\\theta - v\\rVert$ by lineax QR, never by
+    normal equations.
+
+    Columns are scaled to unit norm first, then Tikhonov rows $\\sqrt{\\text{ridge}}\\,I$
+    are appended: masked (all-zero) columns stay well posed (their coefficient is 0)
+    while the solution moves by $O(\\text{ridge}/\\sigma_{min}^2)$ of the *scaled*
+    problem only.
+    """
+    k = M.shape[1]
+    norms = jnp.sqrt(jnp.sum(M**2, axis=0))
+    scale = jnp.where(norms > 0, norms, 1.0)
+    Ms = M / scale
+    Ms = jnp.concatenate([Ms, jnp.sqrt(ridge) * jnp.eye(k, dtype=M.dtype)], axis=0)
+    v = jnp.concatenate([v, jnp.zeros((k,), v.dtype)])
+    return lx.linear_solve(lx.MatrixLinearOperator(Ms), v, lx.QR(), throw=False).value / scale

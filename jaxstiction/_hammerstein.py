@@ -36,6 +36,8 @@ class SplineSettings(eqx.Module):
     - `relax_steps`: cap on relaxation sweeps.
     - `welch_segment`: segment length of the spectral estimates in (18).
     - `polish`: run the output-error polish after the paper's steps.
+    - `range_factor`: a candidate whose simulation leaves the estimation PV range by
+      more than this many ranges is not chosen.
     """
 
     arx_order: int = eqx.field(static=True, default=10)
@@ -46,6 +48,7 @@ class SplineSettings(eqx.Module):
     welch_segment: int = eqx.field(static=True, default=128)
     polish: bool = eqx.field(static=True, default=True)
     polish_steps: int = eqx.field(static=True, default=60)
+    range_factor: float = eqx.field(static=True, default=1.0)
 
 
 class HammersteinModel(eqx.Module):
@@ -146,8 +149,12 @@ class CandidateFit(eqx.Module):
     fitness_paper: Float[Array, ""]
 
 
-def fit_candidate(y, u, h, knots, knot_mask, weights, settings: SplineSettings, num_knots):
-    """Run the whole spline pipeline for one candidate (knots may be padded)."""
+def fit_candidate(y, u, h, knots, knot_mask, weights, mask, settings: SplineSettings, num_knots):
+    """Run the whole spline pipeline for one candidate (knots may be padded).
+
+    `weights` marks the estimation samples, `mask` every real sample (the range
+    check simulates over the whole record's OP but never looks at its PV outside
+    the estimation samples)."""
     n, D = settings.arx_order, settings.max_delay
     phi = hysteresis_regressors(u, h, knots, knot_mask)
     prob = relax_problem(y, phi, n, weights)
@@ -156,7 +163,7 @@ def fit_candidate(y, u, h, knots, knot_mask, weights, settings: SplineSettings, 
     x = phi @ hi.beta
     count = jnp.sum(weights)
     w, Gn, weight, variance, _, _ = asymptotic_weight(
-        hi.a, hi.b, x * weights, y * weights, order=n, count=count, seg=settings.welch_segment
+        hi.a, hi.b, x * weights, y * weights, order=n, count=count, seg=settings.welch_segment, weights=weights
     )
     red = reduce_model(Gn, weight, w, variance, max_order=settings.max_order, max_delay=D)
     low = jax.tree.map(lambda t: t[red.best], red.models)
@@ -177,8 +184,18 @@ def fit_candidate(y, u, h, knots, knot_mask, weights, settings: SplineSettings, 
     voe_paper = v_oe(paper, False)
     dof = 2 * n + num_knots
     foe = (count + dof) / (count - dof) * voe
-    fit = fitness(y, model.simulate(phi, D), weights)
+    ysim = model.simulate(phi, D)
+    fit = fitness(y, ysim, weights)
     fit_paper = fitness(y, paper.simulate(phi, D, initial_state=False), weights)
+    # A model whose simulation (driven by the whole record's OP) leaves the range of
+    # the estimation PV by more than that range is never chosen: it runs away.
+    big = jnp.finfo(y.dtype).max
+    ymin = jnp.min(jnp.where(weights > 0, y, big))
+    ymax = jnp.max(jnp.where(weights > 0, y, -big))
+    span = ymax - ymin
+    inside = (ysim >= ymin - settings.range_factor * span) & (ysim <= ymax + settings.range_factor * span)
+    sane = jnp.all(inside | (mask == 0))
+    foe = jnp.where(sane, foe, jnp.inf)
     return CandidateFit(rsol, red, paper, model, pres, voe, voe_paper, foe, fit, fit_paper)
 
 
@@ -195,24 +212,28 @@ def candidate_knots(settings: SplineSettings, dtype):
     return jnp.stack(knots), jnp.stack(masks), jnp.asarray(settings.knot_counts)
 
 
-@eqx.filter_jit
-def fit_spline_candidates(y, u, directions, weights, settings: SplineSettings) -> CandidateFit:
+def fit_spline_candidates(y, u, directions, weights, mask, settings: SplineSettings) -> CandidateFit:
     r"""Fit every (direction rule × knot count) candidate in one vmapped call.
 
     **Arguments:**
 
     - `y`: scaled output (time,); `u`: input scaled to [-1, 1] (time,).
     - `directions`: (rules, time) direction signals, e.g. literal and robust.
-    - `weights`: (time,) 1 on estimation samples, 0 elsewhere.
+    - `weights`: (time,) 1 on estimation samples, 0 elsewhere; `mask`: (time,) 1 on
+      real samples, 0 on padding.
     - `settings`: [`jaxstiction.SplineSettings`][].
 
     **Returns:** a [`jaxstiction.CandidateFit`][] with leading axes (rules, knots).
     """
     knots, masks, counts = candidate_knots(settings, y.dtype)
-
-    def per_rule(h):
-        return jax.vmap(lambda k, mk, c: fit_candidate(y, u, h, k, mk, weights, settings, c))(
-            knots, masks, counts
-        )
-
-    return jax.vmap(per_rule)(directions)
+    R, K = directions.shape[0], knots.shape[0]
+    ri = jnp.repeat(jnp.arange(R), K)
+    ki = jnp.tile(jnp.arange(K), R)
+    # One candidate at a time (lax.map): memory stays that of one candidate's
+    # regressors, which matters for long records.
+    out = jax.lax.map(
+        lambda ik: fit_candidate(y, u, directions[ik[0]], knots[ik[1]], masks[ik[1]], weights, mask, settings,
+                                 counts[ik[1]]),
+        (ri, ki),
+    )
+    return jax.tree.map(lambda t: t.reshape((R, K) + t.shape[1:]), out)

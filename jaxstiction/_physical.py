@@ -13,10 +13,10 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._blocks import kano, kano_init
-from ._filters import fitness, is_stable, lagged, lfilter, steady_state
+from ._blocks import Kano
+from ._filters import is_stable, lagged, lfilter, lstsq as _lstsq, steady_state
+from ._misc import chunked_vmap
 from ._reduce import LowOrder
-from ._relax import _lstsq
 from ._spline import scale_input
 
 
@@ -27,7 +27,11 @@ class PhysicalSettings(eqx.Module):
       `J` spans 0 to `S`.
     - `starts`: best stage-1 points refined on a `refine` × `refine` local grid.
     - `final`: points per axis of the output-error grid (stage 3, profile likelihood).
-    - `burn_in`: samples ignored after the model valve first moves (see `_burn_in`).
+    - `burn_in`: samples ignored after the model valve first moves (see
+      `valve_from`); `init_count`: candidate stopping points per direction of the
+      unknown initial valve state, tried in the line searches and the final stage.
+    - `refine_S`: S points of the stage-2 grid; `polish_starts`, `line`, `rounds`:
+      alternating fine line searches in S and J from that many stage-2 points.
     - `arx_order`: order of the least-squares linear part on the coarse grid.
     - `order`: order of the output-error linear part.
     - `max_delay`: delays 1..`max_delay` are tried.
@@ -41,8 +45,14 @@ class PhysicalSettings(eqx.Module):
     max_delay: int = eqx.field(static=True, default=3)
     starts: int = eqx.field(static=True, default=8)
     refine: int = eqx.field(static=True, default=21)
+    refine_S: int = eqx.field(static=True, default=81)
     final: int = eqx.field(static=True, default=5)
     oe_steps: int = eqx.field(static=True, default=40)
+    chunk: int = eqx.field(static=True, default=64)
+    init_count: int = eqx.field(static=True, default=5)
+    polish_starts: int = eqx.field(static=True, default=3)
+    line: int = eqx.field(static=True, default=41)
+    rounds: int = eqx.field(static=True, default=3)
     burn_in: int = eqx.field(static=True, default=10)
 
 
@@ -60,13 +70,22 @@ def arx_loss(x, y, weights, order: int, delay):
     return jnp.sum((w * (y - X @ th)) ** 2) / jnp.sum(w)
 
 
-def _burn_in(x, weights, burn: int):
-    """Drop the samples before the model valve first moves (plus `burn` samples of
-    transient): until then the valve sits at an unknown initial position that the
-    model cannot know, and those samples would otherwise dominate the (S, J) search."""
-    moved = jnp.abs(x - x[0]) > 0
-    first = jnp.where(jnp.any(moved), jnp.argmax(moved), x.shape[0])
-    return weights * (jnp.arange(x.shape[0]) >= first + burn)
+def valve_from(op, S, J, weights, burn: int, start, count: int):
+    """Kano valve position for `op` from candidate initial state number `start` of
+    `Kano.initial_states(op[0], count)` (`start = count // 2` is the default start:
+    stopped at `op[0]`, last travel up), and the weights of the samples from its first
+    move on (plus `burn` samples of linear transient).
+
+    Before its first move the valve rests at an unknown position; those samples are
+    not scored. The mean loss over the scored samples is the criterion, so the
+    unknown start does not decide the search.
+    """
+    blk = Kano(S, J)
+    state = jax.tree.map(lambda t: t[start], blk.initial_states(op[0], count))
+    x = blk(op, state)
+    moved = x != x[0]
+    first = jnp.where(jnp.any(moved), jnp.argmax(moved), op.shape[0])
+    return x, weights * (jnp.arange(op.shape[0]) >= first + burn)
 
 
 def _delay(x, d):
@@ -95,7 +114,8 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
 
     The noise model matters: in closed loop the input is correlated with the noise
     through the controller, and a pure output-error fit ($C/D = 1$) is biased.
-    Returns the deterministic part (`OEModel`) and the solver result."""
+    Returns the deterministic part (`OEModel`), the noise polynomials `(C, D)` and the
+    solver result."""
     L = order
     X = _arx_design(x, y, L, delay)
     w = weights * (jnp.arange(y.shape[0]) >= L + max_delay)
@@ -131,19 +151,9 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
     m = model(sol.value)
     ok = is_stable(m.linear.polynomials(max_delay)[1])
     m = jax.tree.map(lambda n, s: jnp.where(ok, n, s), m, model(theta0))
-    return m, sol.result
-
-def physical_valve(op, S, J, model: OEModel, y0, lo, hi, max_delay: int):
-    """Scaled valve position for OP `op` through Kano(S, J), starting at rest at the
-    position that puts the model's steady-state output at the first PV sample `y0`
-    (the valve's initial position is otherwise unknown)."""
-    b, a = model.linear.polynomials(max_delay)
-    gain = jnp.sum(b) / jnp.sum(a)
-    x0 = (y0 - model.offset) / jnp.where(jnp.abs(gain) > 1e-12, gain, 1e-12)
-    x0 = jnp.clip(lo + (x0 + 1.0) * (hi - lo) / 2.0, jnp.min(op) - (hi - lo), jnp.max(op) + (hi - lo))
-    state = (x0,) + tuple(kano_init(op[0])[1:])
-    return scale_input(kano(op, S, J, state=state), lo, hi)
-
+    c = jnp.concatenate([one, jnp.where(ok, jnp.tanh(sol.value[4]), 0.0)])
+    d = jnp.concatenate([one, jnp.where(ok, jnp.tanh(sol.value[5]), 0.0)])
+    return m, (c, d), sol.result
 
 def models_at(models, i):
     """Member `i` of a batch of models."""
@@ -160,7 +170,7 @@ class PhysicalFit(eqx.Module):
     delay: Array
     model: OEModel
     v_oe: Float[Array, ""]
-    fitness: Float[Array, ""]
+    noise: tuple
     grid_S: Float[Array, " g"]
     grid_J: Float[Array, " g"]
     grid_loss: Float[Array, " g"]
@@ -184,64 +194,114 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     # slip event. Hence a dense separable-LS search (cheap ARX least squares at each
     # point, evaluated in batches) before any output-error fit.
 
-    # Samples before the model valve first moves are charged the output variance
-    # (unexplained), so a late first move is not a way to skip data.
-    var_y = jnp.sum(weights * (y - jnp.sum(weights * y) / count) ** 2) / count
-
+    # The valve's state at the start of the record is unknown, so each (S, J) is
+    # scored on the samples after its model valve first moves (plus a transient),
+    # as a mean. Charging the skipped samples instead lets the unknown start decide
+    # the search: the true (S, J) from the default start often moves late. A model
+    # valve that stays put for most of the record is not a fit: it needs at least
+    # half of the estimation samples.
     def charged(v, wb):
-        skipped = jnp.sum(weights - wb)
-        return (v * jnp.sum(wb) + skipped * var_y) / count
+        return jnp.where(jnp.sum(wb) >= 0.5 * count, v, jnp.inf)
 
-    def arx_at(s, j):
-        x = scale_input(kano(op, s, j), lo, hi)
-        wb = _burn_in(x, weights, settings.burn_in)
-        return jax.vmap(lambda d: charged(arx_loss(x, y, wb, settings.arx_order, d), wb))(delays)
+    default = settings.init_count // 2
+    starts_all = jnp.arange(2 * settings.init_count + 2)
 
-    def search(S, J):
-        # Plain vmap: `lax.map(..., batch_size=...)` stalled XLA's CPU runtime here
-        # (jaxlib 0.10.2, reproducible, all threads idle); the grid fits in memory.
-        loss = jax.vmap(arx_at)(S, J)
-        return jnp.min(loss, axis=1), jnp.argmin(loss, axis=1)
+    def arx_at(s, j, ds, cands):
+        def one(c):
+            x, wb = valve_from(op, s, j, weights, settings.burn_in, c, settings.init_count)
+            x = scale_input(x, lo, hi)
+            return jax.vmap(lambda d: charged(arx_loss(x, y, wb, settings.arx_order, d), wb))(ds)
 
-    # Stage 1: S in [0, max_band * span], J = S * fraction.
+        loss = jax.vmap(one)(cands)  # (cands, delays)
+        flat = jnp.argmin(loss.ravel())
+        return jnp.min(loss), ds[flat % ds.shape[0]], cands[flat // ds.shape[0]]
+
+    def search(S, J, ds=delays, cands=jnp.array([default])):
+        return chunked_vmap(lambda s, j: arx_at(s, j, ds, cands), (S, J), settings.chunk)
+
+    # Stage 1: S in [0, max_band * span], J = S * fraction, every delay.
     Sg = jnp.linspace(0.0, settings.max_band, settings.num_S, dtype=dtype) * span
     fr = jnp.linspace(0.0, 1.0, settings.num_J, dtype=dtype)
     S1 = jnp.repeat(Sg, settings.num_J)
     J1 = S1 * jnp.tile(fr, settings.num_S)
-    l1, _ = search(S1, J1)
+    l1, d1, _ = search(S1, J1)
     top = jnp.argsort(l1)[: settings.starts]
-    # Stage 2: a fine local grid around each of the best stage-1 points.
+    # The delay barely interacts with S and J: the best stage-1 point's is kept.
+    delay = d1[top[0]][None]
+    # Stage 2: around each of the best stage-1 points, S on a fine grid (the loss is
+    # a narrow ridge in S: cells ~0.05 % wide on a 1500-sample record) and J on a
+    # coarser one.
     dS = span * settings.max_band / (settings.num_S - 1)
-    r = jnp.linspace(-1.0, 1.0, settings.refine, dtype=dtype)
+    rs = jnp.linspace(-1.0, 1.0, settings.refine_S, dtype=dtype)
+    rj = jnp.linspace(-1.0, 1.0, settings.refine, dtype=dtype)
     dJ = jnp.maximum(S1[top] / (settings.num_J - 1), dS)
-    S2 = jnp.clip(S1[top][:, None] + dS * jnp.repeat(r, settings.refine)[None, :], 0.0, None).ravel()
-    J2 = jnp.clip(J1[top][:, None] + dJ[:, None] * jnp.tile(r, settings.refine)[None, :], 0.0, None).ravel()
+    S2 = jnp.clip(S1[top][:, None] + dS * jnp.repeat(rs, settings.refine)[None, :], 0.0, None).ravel()
+    J2 = jnp.clip(J1[top][:, None] + dJ[:, None] * jnp.tile(rj, settings.refine_S)[None, :], 0.0, None).ravel()
     J2 = jnp.minimum(J2, S2)
-    l2, d2 = search(S2, J2)
-    k = jnp.argmin(l2)
-    delay = delays[d2[k]]
-    # Stage 3: output-error fits on a small grid around the best point, which also
-    # gives the profile likelihood of (S, J).
+    l2, _, _ = search(S2, J2, delay)
+    # The loss is a narrow ridge (cells of width ~0.05 % in S on a 1500-sample
+    # record), finer than any affordable grid: refine the best point of each of the
+    # `polish_starts` best stage-2 blocks by alternating fine line searches in S and J.
+    R2 = settings.refine * settings.refine_S
+    blk_best = jnp.argmin(l2.reshape(settings.starts, R2), axis=1) + jnp.arange(settings.starts) * R2
+    lb = l2[blk_best]
+    # overlapping blocks often share their best point: keep distinct points only
+    same = (jnp.abs(S2[blk_best][:, None] - S2[blk_best][None, :]) < 1e-9) & (
+        jnp.abs(J2[blk_best][:, None] - J2[blk_best][None, :]) < 1e-9)
+    earlier = (lb[None, :] < lb[:, None]) | ((lb[None, :] == lb[:, None]) & (
+        jnp.arange(settings.starts)[None, :] < jnp.arange(settings.starts)[:, None]))
+    lb = jnp.where(jnp.any(same & earlier, axis=1), jnp.inf, lb)
+    order = jnp.argsort(lb)[: settings.polish_starts]
+    pick = blk_best[order]
+    s0, j0, dJk = S2[pick], J2[pick], dJ[order]
+    rl = jnp.linspace(-1.0, 1.0, settings.line, dtype=dtype)
+    c0 = jnp.full((settings.polish_starts,), default)
+    for _ in range(settings.rounds):
+        for axis in (0, 1):
+            if axis == 0:
+                Sl = jnp.clip(s0[:, None] + dS * rl[None, :], 0.0, None)
+                Jl = jnp.minimum(jnp.broadcast_to(j0[:, None], Sl.shape), Sl)
+            else:
+                Jl = jnp.clip(j0[:, None] + dJk[:, None] * rl[None, :], 0.0, None)
+                Sl = jnp.broadcast_to(s0[:, None], Jl.shape)
+                Jl = jnp.minimum(Jl, Sl)
+            ll, _, cl = search(Sl.ravel(), Jl.ravel(), delay, starts_all)
+            a = jnp.argmin(ll.reshape(Sl.shape), axis=1)
+            c0 = jnp.take_along_axis(cl.reshape(Sl.shape), a[:, None], axis=1)[:, 0]
+            s0 = jnp.take_along_axis(Sl, a[:, None], axis=1)[:, 0]
+            j0 = jnp.take_along_axis(Jl, a[:, None], axis=1)[:, 0]
+    # Stage 3: output-error (Box-Jenkins) fits on a small grid around each refined
+    # point; the best decides, and its grid gives the profile likelihood of (S, J).
     hs = dS / (settings.refine - 1)
-    hj = dJ[k // (settings.refine**2)] / (settings.refine - 1)
+    hjk = dJk / (settings.refine - 1)
     rr = jnp.linspace(-1.0, 1.0, settings.final, dtype=dtype)
-    Sf = jnp.clip(S2[k] + hs * jnp.repeat(rr, settings.final), 0.0, None)
-    Jf = jnp.minimum(jnp.clip(J2[k] + hj * jnp.tile(rr, settings.final), 0.0, None), Sf)
+    Sf = jnp.clip(s0[:, None] + hs * jnp.repeat(rr, settings.final)[None, :], 0.0, None)
+    Jf = jnp.minimum(jnp.clip(j0[:, None] + hjk[:, None] * jnp.tile(rr, settings.final)[None, :], 0.0, None), Sf)
+    delay_k = jnp.repeat(delay, settings.polish_starts)
 
-    def fine(s, j):
-        x = scale_input(kano(op, s, j), lo, hi)
-        wb = _burn_in(x, weights, settings.burn_in)
-        m, res = fit_oe(x, y, wb, settings.order, delay, settings.max_delay, settings.oe_steps)
+    def fine(s, j, delay, c):
+        x, wb = valve_from(op, s, j, weights, settings.burn_in, c, settings.init_count)
+        x = scale_input(x, lo, hi)
+        m, cd, res = fit_oe(x, y, wb, settings.order, delay, settings.max_delay, settings.oe_steps)
         v = charged(jnp.sum((wb * (y - m.simulate(x, settings.max_delay))) ** 2) / jnp.sum(wb), wb)
-        return m, jnp.where(jnp.isfinite(v), v, jnp.inf), res
+        return (m, cd), jnp.where(jnp.isfinite(v), v, jnp.inf), res
 
-    models, v, res = jax.vmap(fine)(Sf, Jf)
+    K, F = Sf.shape
+    (models, noises), v, res = jax.vmap(fine)(Sf.ravel(), Jf.ravel(), jnp.repeat(delay_k, F), jnp.repeat(c0, F))
+    kbest = jnp.argmin(jnp.min(v.reshape(K, F), axis=1))
+    sel = kbest * F + jnp.arange(F)
+    models, noises, res = jax.tree.map(lambda t: t[sel], (models, noises, res))
+    v, Sf, Jf = v[sel], Sf[kbest], Jf[kbest]
+    delay = delay_k[kbest]
+    start = c0[kbest]
+    hj = hjk[kbest]
     b = jnp.argmin(v)
     step = 2.0 / (settings.final - 1)
     # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
     # corrected for residual autocorrelation (output-error residuals are coloured).
-    x = scale_input(kano(op, Sf[b], Jf[b]), lo, hi)
-    e = _burn_in(x, weights, settings.burn_in) * (y - models_at(models, b).simulate(x, settings.max_delay))
+    x, wb = valve_from(op, Sf[b], Jf[b], weights, settings.burn_in, start, settings.init_count)
+    x = scale_input(x, lo, hi)
+    e = wb * (y - models_at(models, b).simulate(x, settings.max_delay))
     rho = jnp.clip(jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2), 0.0, 0.99)
     neff = count * (1 - rho) / (1 + rho)
     inside = neff * jnp.log(v / v[b]) <= 5.99
@@ -262,8 +322,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     dist = ((Sf - cS) / hs) ** 2 + ((Jf - cJ) / jnp.maximum(hj, 1e-12)) ** 2
     b = jnp.argmin(jnp.where(inside, dist, jnp.inf))
     best = models_at(models, b)
-    x = physical_valve(op, Sf[b], Jf[b], best, y[0], lo, hi, settings.max_delay)
-    ysim = best.simulate(x, settings.max_delay)
+    noise = models_at(noises, b)
     return PhysicalFit(
         S=Sf[b],
         J=Jf[b],
@@ -272,7 +331,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
         delay=delay,
         model=best,
         v_oe=v[b],
-        fitness=fitness(y, ysim, weights),
+        noise=noise,
         grid_S=Sf,
         grid_J=Jf,
         grid_loss=v,

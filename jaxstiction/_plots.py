@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._fit import crossing as _crossing
+from ._report import crossing as _crossing
 
 
 DPI = 110

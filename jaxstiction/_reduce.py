@@ -15,31 +15,41 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._filters import freq_response, is_stable, lagged, lfilter
-from ._relax import _lstsq
+from ._filters import freq_response, is_stable, lagged, lfilter, lstsq as _lstsq
 
 
-def welch(x, e, seg: int):
+def welch(x, e, seg: int, weights=None):
     """Smoothed auto- and cross-spectra of `x`, `e` (Hann-windowed segments of length
     `seg`, half overlap). Returns angular frequencies in (0, pi] and Phi_x, Phi_e,
-    Phi_xe on them (two-sided scaling: white noise of variance R has Phi = R)."""
+    Phi_xe on them (two-sided scaling: white noise of variance R has Phi = R).
+
+    `weights` (time,) in {0, 1}: only segments lying wholly on samples with weight 1
+    are averaged, so masked or padded samples never dilute the spectra.
+    """
     N = x.shape[0]
     step = seg // 2
     starts = jnp.arange(0, N - seg + 1, step)
     win = jnp.hanning(seg + 2)[1:-1].astype(x.dtype)
     norm = jnp.sum(win**2)
+    w_all = jnp.ones((N,), x.dtype) if weights is None else weights
 
     def one(s):
         xs = jax.lax.dynamic_slice(x, (s,), (seg,))
         es = jax.lax.dynamic_slice(e, (s,), (seg,))
+        ok = jnp.min(jax.lax.dynamic_slice(w_all, (s,), (seg,))) > 0
         X = jnp.fft.rfft(win * (xs - xs.mean()))
         E = jnp.fft.rfft(win * (es - es.mean()))
-        return jnp.abs(X) ** 2, jnp.abs(E) ** 2, X * jnp.conj(E)
+        return jnp.abs(X) ** 2, jnp.abs(E) ** 2, X * jnp.conj(E), ok.astype(x.dtype)
 
-    pxx, pee, pxe = jax.vmap(one)(starts)
+    pxx, pee, pxe, ok = jax.vmap(one)(starts)
+    cnt = jnp.maximum(jnp.sum(ok), 1.0)
+
+    def avg(p):
+        return jnp.sum(ok[:, None] * p, 0) / cnt
+
     w = 2 * jnp.pi * jnp.arange(seg // 2 + 1) / seg
     sl = slice(1, None)
-    return w[sl], pxx.mean(0)[sl] / norm, pee.mean(0)[sl] / norm, pxe.mean(0)[sl] / norm
+    return w[sl], avg(pxx)[sl] / norm, avg(pee)[sl] / norm, avg(pxe)[sl] / norm
 
 
 class LowOrder(eqx.Module):
@@ -138,7 +148,7 @@ def reduce_model(
     return ReductionSolution(models, crit, asyc, stable, result, best)
 
 
-def asymptotic_weight(a_n, b_n, x, y, *, order: int, count, seg: int):
+def asymptotic_weight(a_n, b_n, x, y, *, order: int, count, seg: int, weights=None):
     r"""High-order frequency response $\hat G^n$, the inverse-variance weight of (19)
     and the asymptotic variance (18), on a Welch frequency grid.
 
@@ -149,7 +159,11 @@ def asymptotic_weight(a_n, b_n, x, y, *, order: int, count, seg: int):
     b_full = jnp.concatenate([jnp.zeros((1,), b_n.dtype), b_n])
     e = lfilter(a_full, jnp.ones((1,), a_n.dtype), y) - lfilter(b_full, jnp.ones((1,), a_n.dtype), x)
     e = e.at[:order].set(0.0)
-    w, pxx, pee, pxe = welch(x, e, seg)
+    if weights is not None:
+        # a residual is valid only where its whole regression window is on data
+        valid = weights * jnp.prod(lagged(weights, order), axis=1)
+        e = e * valid
+    w, pxx, pee, pxe = welch(x, e, seg, weights)
     R = jnp.sum(e**2) / count
     Gn = freq_response(b_full, a_full, w)
     An = freq_response(a_full, jnp.ones((1,), a_n.dtype), w)

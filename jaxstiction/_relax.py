@@ -16,11 +16,10 @@ of normal matrices, so its conditioning is that of the original problem.
 
 import equinox as eqx
 import jax.numpy as jnp
-import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
-from ._filters import lagged
+from ._filters import lagged, lstsq as _lstsq
 
 
 class RelaxProblem(eqx.Module):
@@ -72,20 +71,6 @@ class ARXHammerstein(eqx.Module):
     a: Float[Array, " n"]
     b: Float[Array, " n"]
     beta: Float[Array, " p"]
-
-
-def _lstsq(M, v, ridge):
-    # Columns are scaled to unit norm first, then Tikhonov rows sqrt(ridge) * I are
-    # appended: this keeps masked (all-zero) columns well posed while perturbing the
-    # solution by O(ridge / sigma_min^2) of the *scaled* problem only. (An absolute
-    # ridge would scale with the sqrt(N)-sized entries of R and bias the fit.)
-    k = M.shape[1]
-    norms = jnp.sqrt(jnp.sum(M**2, axis=0))
-    scale = jnp.where(norms > 0, norms, 1.0)
-    Ms = M / scale
-    Ms = jnp.concatenate([Ms, jnp.sqrt(ridge) * jnp.eye(k, dtype=M.dtype)], axis=0)
-    v = jnp.concatenate([v, jnp.zeros((k,), v.dtype)])
-    return lx.linear_solve(lx.MatrixLinearOperator(Ms), v, lx.QR(), throw=False).value / scale
 
 
 def _coef(model: ARXHammerstein):

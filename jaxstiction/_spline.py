@@ -42,16 +42,22 @@ def direction(u: Float[Array, " time"], *, threshold=0.0) -> Float[Array, " time
     return jnp.where(threshold > 0, robust, literal)
 
 
-def noise_threshold(u: Float[Array, " time"], *, factor=3.0):
+def noise_threshold(u: Float[Array, " time"], weights=None, *, factor=3.0):
     r"""A direction threshold tied to the OP noise level.
 
     Estimates the noise standard deviation $\sigma$ of `u` from its second
     differences, robustly (median absolute deviation; for white noise the second
     difference has standard deviation $\sqrt 6\,\sigma$), and returns
-    `factor * sigma`.
+    `factor * sigma`. `weights` (time,) in {0, 1} restricts it to the samples marked
+    1 (a second difference counts only when its three samples are all marked).
     """
-    d2 = jnp.diff(jnp.asarray(u), n=2)
-    mad = jnp.median(jnp.abs(d2 - jnp.median(d2)))
+    u = jnp.asarray(u)
+    d2 = jnp.diff(u, n=2)
+    if weights is not None:
+        ok = (weights[2:] * weights[1:-1] * weights[:-2]) > 0
+        d2 = jnp.where(ok, d2, jnp.nan)
+    med = jnp.nanmedian(d2)
+    mad = jnp.nanmedian(jnp.abs(d2 - med))
     return factor * 1.4826 * mad / jnp.sqrt(6.0)
 
 

@@ -1,0 +1,355 @@
+r"""`estimate`: one loop, end to end, as one pure jitted function.
+
+Spline candidates (direction rule × knot count: relaxation, reduction, ASYC, polish,
+FOE), the physical Kano model, the choice between them by FOE, the paper's literal
+method for reference, and the validation scores, all inside one `jit`, with no
+host round trip, so `eqx.filter_vmap(estimate)` batches whole loops. Data problems
+become [`jaxstiction.RESULTS`][] codes, never exceptions, so one bad loop in a batch
+spoils nothing else.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Float, Int
+
+from ._blocks import Kano
+from ._criteria import foe, score, ScoreSettings, simulate_scored
+from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinModel, SplineSettings
+from ._loop import Loop
+from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
+from ._physical import fit_physical, PhysicalSettings
+from ._reduce import fit_noise_model
+from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
+
+
+class RESULTS(optx.RESULTS):  # pyright: ignore
+    """Outcome codes of [`jaxstiction.estimate`][]: optimistix's solver codes plus
+    data codes. `RESULTS[fit.result]` gives the message of an unbatched code."""
+
+    too_short = "the record is too short for the chosen orders"
+    constant_op = "OP is constant: stiction cannot be identified without valve movement"
+    constant_pv = "PV is constant: the process response cannot be identified"
+    nonfinite_data = "the record has NaN or inf values"
+    valve_never_moves = "the fitted valve never moves over the record"
+    not_converged = "the estimator did not converge"
+
+
+class Settings(eqx.Module):
+    """Settings of [`jaxstiction.estimate`][] (all static: they fix shapes).
+
+    - `spline`: [`jaxstiction.SplineSettings`][]; `physical`:
+      [`jaxstiction.PhysicalSettings`][]; `use_physical=False` skips the Kano model.
+    - `validate`: fraction of the real samples held out at the end and scored; 0
+      scores on the estimation data (as the paper did for its industrial loop).
+    - `robust_factor`: the robust direction threshold in OP-noise standard deviations.
+    - `score`: how simulations are scored ([`jaxstiction.ScoreSettings`][]).
+    """
+
+    spline: SplineSettings = SplineSettings()
+    physical: PhysicalSettings = PhysicalSettings()
+    score: ScoreSettings = ScoreSettings()
+    use_physical: bool = eqx.field(static=True, default=True)
+    validate: float = eqx.field(static=True, default=1 / 3)
+    robust_factor: float = eqx.field(static=True, default=3.0)
+
+    def __check_init__(self):
+        if not 0.0 <= self.validate < 1.0:
+            raise ValueError(f"`validate` must be in [0, 1), got {self.validate}")
+
+
+def min_length(settings: Settings) -> int:
+    """Fewest estimation samples the chosen orders can be fitted from."""
+    s = settings.spline
+    p = 2 * (max(s.knot_counts) + 2)
+    # the relaxation's lagged regressor matrix has n (p + 1) columns
+    return max(s.arx_order * (p + 1) + 50, 2 * s.welch_segment)
+
+
+class LoopFit(eqx.Module):
+    """Result of [`jaxstiction.estimate`][] (arrays; a leading axis when batched).
+
+    - `model`: the chosen [`jaxstiction.LoopModel`][] in engineering units (OP in %,
+      PV in its units); `kind` 0 = spline valve, 1 = physical (Kano) valve.
+    - `paper`: the paper's literal method (literal direction rule, no polish);
+      `spline`, `physical`: the best model of each family.
+    - `fitness`: simulation fitness (34) on the validation part (on the estimation
+      data when `validate == 0`), initial state estimated from its opening samples;
+      `fitness_estimation`, `fitness_paper`, `fitness_spline`, `fitness_physical`.
+    - `band_percent`: apparent stiction band (% of OP): Kano's S for the physical
+      model, else the width of the spline loop at mid-height.
+    - `S`, `J` (with 95 % profile-likelihood intervals): the physical fit.
+    - `direction_rule` (0 literal, 1 robust), `num_knots`, `order`, `delay` of the
+      chosen model; `foe`, `candidate_fitness`: every spline candidate (rule × knots);
+      `foe_spline`, `foe_physical`: the choice.
+    - `n_estimation`, `n_validation`, `op_range`, `relax_steps`, `result`.
+    """
+
+    model: LoopModel
+    paper: LoopModel
+    spline: LoopModel
+    physical: LoopModel
+    kind: Int[Array, ""]
+    fitness: Float[Array, ""]
+    fitness_estimation: Float[Array, ""]
+    fitness_paper: Float[Array, ""]
+    fitness_spline: Float[Array, ""]
+    fitness_physical: Float[Array, ""]
+    band_percent: Float[Array, ""]
+    S: Float[Array, ""]
+    J: Float[Array, ""]
+    S_interval: Float[Array, " 2"]
+    J_interval: Float[Array, " 2"]
+    direction_rule: Int[Array, ""]
+    num_knots: Int[Array, ""]
+    order: Int[Array, ""]
+    delay: Int[Array, ""]
+    foe: Float[Array, "rules knots"]
+    candidate_fitness: Float[Array, "rules knots"]
+    foe_spline: Float[Array, ""]
+    foe_physical: Float[Array, ""]
+    n_estimation: Int[Array, ""]
+    n_validation: Int[Array, ""]
+    op_range: Float[Array, " 2"]
+    relax_steps: Int[Array, ""]
+    result: RESULTS
+
+    @property
+    def converged(self):
+        """True where `result` is successful."""
+        return self.result == RESULTS.successful
+
+    def predict(self, op, pv=None, *, k: int | None = None, initial: InitialState | None = None):
+        """Simulate or predict the chosen model on a record.
+
+        - `pv=None`: simulation from `initial` (default: at rest at `op[0]`).
+        - `pv` given, `k=None`: simulation from an initial state estimated on the
+          opening samples of `pv` (as the fitness is scored).
+        - `pv` and `k` given: `k`-step-ahead prediction with the noise model.
+        """
+        if pv is None:
+            return self.model.simulate(op, initial)
+        if k is None:
+            w = jnp.ones_like(jnp.asarray(op))
+            return simulate_scored(self.model, jnp.asarray(op), jnp.asarray(pv), w)[0]
+        return self.model.predict(op, pv, k, initial)
+
+
+def _pad_to(x, n):
+    return jnp.concatenate([x, jnp.zeros((n - x.shape[0],), x.dtype)])
+
+
+def _loop_model(valve0: Kano, valve1: SplineValve, b, a, offset, noise_c, noise_d, noise_var, mu, sd, nb, na):
+    """A LoopModel in engineering units from a scaled-units fit (PV = mu + sd y)."""
+    return LoopModel(
+        chain=(valve0, valve1),
+        process=LinearProcess(b=_pad_to(b * sd, nb), a=_pad_to(a, na)),
+        noise=NoiseModel(c=noise_c, d=noise_d, variance=noise_var * sd**2),
+        op_offset=jnp.zeros((), b.dtype),
+        pv_offset=mu + sd * offset,
+    )
+
+
+def _crossing(u, f, level):
+    """OP at which `f(u)` crosses `level` (the middle crossing if several; NaN if none)."""
+    s = jnp.sign(f - level)
+    ch = jnp.diff(s) != 0
+    count = jnp.sum(ch)
+    k = count // 2
+    i = jnp.argmax(jnp.cumsum(ch) > k)
+    t = (level - f[i]) / jnp.where(f[i + 1] != f[i], f[i + 1] - f[i], 1.0)
+    return jnp.where(count > 0, u[i] + t * (u[i + 1] - u[i]), jnp.nan)
+
+
+def spline_band(beta, knots, knot_mask, lo, hi, num: int = 400):
+    """Horizontal width (% of OP) of the spline hysteresis loop at mid-height."""
+    ug = jnp.linspace(lo, hi, num)
+    up, down = valve_curves(beta, scale_input(ug, lo, hi), knots, knot_mask)
+    mid = 0.5 * (jnp.minimum(up.min(), down.min()) + jnp.maximum(up.max(), down.max()))
+    return jnp.abs(_crossing(ug, up, mid) - _crossing(ug, down, mid))
+
+
+@eqx.filter_jit
+def estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
+    r"""Identify the valve and the process of one loop from OP and PV.
+
+    Pure and jitted end to end: `eqx.filter_vmap(estimate)(jaxstiction.stack(loops))`
+    returns a batched [`jaxstiction.LoopFit`][] whose members equal single calls.
+    Samples with `loop.mask == 0` (padding) are ignored by every stage; the last
+    `settings.validate` fraction of the real samples is held out and scored.
+
+    **Arguments:**
+
+    - `loop`: a [`jaxstiction.Loop`][] (OP in % of span, PV in engineering units).
+    - `settings`: [`jaxstiction.Settings`][].
+
+    **Returns:** a [`jaxstiction.LoopFit`][]. It never raises on bad data: a NaN,
+    constant OP, too-short record or a solver failure is reported in `result`.
+
+    !!! info
+        Enable float64 (`jax.config.update("jax_enable_x64", True)`) for
+        identification; the library never changes that setting itself.
+    """
+    dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
+    op0, pv0 = jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype)
+    mask = jnp.asarray(loop.mask, dtype)
+    N = op0.shape[0]
+    t = jnp.arange(N)
+    finite = jnp.isfinite(op0) & jnp.isfinite(pv0)
+    bad = jnp.any(~finite & (mask > 0))
+    op = jnp.where(finite, op0, 0.0)
+    pv = jnp.where(finite, pv0, 0.0)
+
+    n_real = jnp.sum(mask)
+    n_val = jnp.round(settings.validate * n_real)
+    n_est = n_real - n_val
+    w_est = mask * (t < n_est)
+    w_val = jnp.where(n_val > 0, mask * (t >= n_est), w_est)
+    count = jnp.maximum(jnp.sum(w_est), 1.0)
+    big = jnp.finfo(dtype).max
+    lo = jnp.min(jnp.where(w_est > 0, op, big))
+    hi = jnp.max(jnp.where(w_est > 0, op, -big))
+    op_mean = jnp.sum(w_est * op) / count
+    const_op = (hi - lo) <= 1e-9 * (1 + jnp.abs(op_mean))
+    hi = jnp.where(const_op, lo + 1.0, hi)
+    mu = jnp.sum(w_est * pv) / count
+    sd = jnp.sqrt(jnp.sum(w_est * (pv - mu) ** 2) / count)
+    pv_ptp = jnp.max(jnp.where(w_est > 0, pv, -big)) - jnp.min(jnp.where(w_est > 0, pv, big))
+    const_pv = pv_ptp <= 1e-9 * (1 + jnp.abs(mu))
+    sd = jnp.where(const_pv | ~(sd > 0), 1.0, sd)
+    too_short = n_est < min_length(settings)
+
+    y = (pv - mu) / sd
+    u = scale_input(op, lo, hi)
+    thr = noise_threshold(u, w_est, factor=settings.robust_factor)
+    thr = jnp.where(jnp.isfinite(thr) & (thr > 0), thr, 1e-12)
+    H = jnp.stack([direction(u), direction(u, threshold=thr)])
+
+    # ------------------------------------------------------------ spline family
+    sset = settings.spline
+    D = sset.max_delay
+    cand = fit_spline_candidates(y, u, H, w_est, mask, sset)
+    foe_grid = jnp.where(jnp.isfinite(cand.foe), cand.foe, jnp.inf)
+    K = foe_grid.shape[1]
+    flat = jnp.argmin(foe_grid.ravel())
+    ri, ki = flat // K, flat % K
+    pick = jax.tree.map(lambda x: x[ri, ki], cand)
+    knots, kmasks, counts = candidate_knots(sset, dtype)
+    order_s = jnp.sum(pick.model.linear.mask).astype(jnp.int32)
+    dof_s = 2 * (counts[ki] + 2) + 2 * order_s - 1
+    foe_s = jnp.where(jnp.isfinite(foe_grid[ri, ki]), foe(pick.v_oe, count, dof_s), jnp.inf)
+
+    # the paper's literal method: literal rule, its own FOE choice, no polish
+    dof_p = 2 * sset.arx_order + counts
+    foe_paper = jnp.where(jnp.isfinite(cand.v_oe_paper[0]), foe(cand.v_oe_paper[0], count, dof_p), jnp.inf)
+    lit = jnp.argmin(foe_paper)
+    plit = jax.tree.map(lambda x: x[0, lit], cand)
+
+    M = max(sset.knot_counts)
+    nb = D + sset.max_order
+    na = sset.max_order + 1
+    if settings.use_physical:
+        nb = max(nb, settings.physical.max_delay + settings.physical.order)
+        na = max(na, settings.physical.order + 1)
+    none = Kano(jnp.zeros((), dtype), jnp.zeros((), dtype))
+
+    def spline_model(hm: HammersteinModel, rule, k, phi_rule_thr):
+        phi = hysteresis_regressors(u, H[rule], knots[k], kmasks[k])
+        v = y - hm.simulate(phi, D)
+        nm = fit_noise_model(v, w_est, order=1)
+        b, a = hm.linear.polynomials(D)
+        valve = SplineValve(hm.beta, knots[k], kmasks[k], lo, hi, phi_rule_thr)
+        one = jnp.ones((1,), dtype)
+        return _loop_model(none, valve, b, a, hm.offset, jnp.concatenate([one, nm.c]),
+                           jnp.concatenate([one, nm.d]), nm.variance, mu, sd, nb, na)
+
+    m_spline = spline_model(pick.model, ri, ki, jnp.where(ri == 1, thr, 0.0))
+    paper_hm = HammersteinModel(plit.paper.beta, plit.paper.linear, plit.paper.offset, jnp.zeros_like(plit.paper.state))
+    m_paper = spline_model(paper_hm, 0, lit, jnp.zeros((), dtype))
+
+    # ---------------------------------------------------------- physical family
+    if settings.use_physical:
+        pset = settings.physical
+        phys = fit_physical(op, y, w_est, lo, hi, pset)
+        pb, pa = phys.model.linear.polynomials(pset.max_delay)
+        c_n, d_n = phys.noise
+        m_phys = _loop_model(Kano(phys.S, phys.J), SplineValve.linear(lo, hi, M, dtype), pb, pa, phys.model.offset,
+                             c_n, d_n, phys.v_oe, mu, sd, nb, na)
+        dof_ph = 2 + 2 * pset.order + 1
+        foe_ph = jnp.where(jnp.isfinite(phys.v_oe), foe(phys.v_oe, count, dof_ph), jnp.inf)
+        S, J, S_int, J_int = phys.S, phys.J, phys.S_interval, phys.J_interval
+        delay_ph, order_ph, res_ph = phys.delay, pset.order, phys.result
+    else:
+        m_phys = m_spline
+        foe_ph = jnp.asarray(jnp.inf, dtype)
+        nan = jnp.asarray(jnp.nan, dtype)
+        S = J = nan
+        S_int = J_int = jnp.full((2,), jnp.nan, dtype)
+        delay_ph, order_ph, res_ph = 0, 0, optx.RESULTS.successful
+
+    # ----------------------------------------------------------------- choice
+    # Each model's own FOE on the estimation data: the choice never looks at the
+    # validation data, and a run-away spline candidate is already excluded.
+    physical = foe_ph < foe_s
+    model = jax.tree.map(lambda p, s: jnp.where(physical, p, s), m_phys, m_spline)
+
+    sset_score = settings.score
+    fit_val = score(model, op, pv, w_val, sset_score)
+    fit_est = score(model, op, pv, w_est, sset_score)
+    fit_paper = score(m_paper, op, pv, w_val, sset_score)
+    fit_spline = score(m_spline, op, pv, w_val, sset_score)
+    fit_phys = score(m_phys, op, pv, w_val, sset_score) if settings.use_physical else jnp.asarray(jnp.nan, dtype)
+
+    band_spline = spline_band(pick.model.beta, knots[ki], kmasks[ki], lo, hi)
+    band = jnp.where(physical, S, band_spline)
+
+    # ----------------------------------------------------------------- result
+    res_spline = RESULTS.where(
+        pick.relaxation.result == optx.RESULTS.successful,
+        RESULTS.promote(pick.polish_result),
+        RESULTS.promote(pick.relaxation.result),
+    )
+    solver = RESULTS.where(physical, RESULTS.promote(res_ph), res_spline)
+    solver = RESULTS.where(jnp.isfinite(jnp.minimum(foe_ph, foe_s)), solver, RESULTS.not_converged)
+    xk = Kano(S, J)(op)
+    never = physical & jnp.all(jnp.where(w_est > 0, xk == xk[0], True))
+    result = RESULTS.where(never, RESULTS.valve_never_moves, solver)
+    result = RESULTS.where(const_pv, RESULTS.constant_pv, result)
+    result = RESULTS.where(const_op, RESULTS.constant_op, result)
+    result = RESULTS.where(too_short, RESULTS.too_short, result)
+    result = RESULTS.where(bad, RESULTS.nonfinite_data, result)
+
+    i32 = jnp.int32
+    return LoopFit(
+        model=model,
+        paper=m_paper,
+        spline=m_spline,
+        physical=m_phys,
+        kind=physical.astype(i32),
+        fitness=fit_val,
+        fitness_estimation=fit_est,
+        fitness_paper=fit_paper,
+        fitness_spline=fit_spline,
+        fitness_physical=fit_phys,
+        band_percent=band,
+        S=S,
+        J=J,
+        S_interval=S_int,
+        J_interval=J_int,
+        direction_rule=jnp.where(physical, 0, ri).astype(i32),
+        num_knots=jnp.where(physical, 0, counts[ki]).astype(i32),
+        order=jnp.where(physical, order_ph, order_s).astype(i32),
+        delay=jnp.where(physical, delay_ph, pick.model.linear.delay).astype(i32),
+        foe=foe_grid,
+        candidate_fitness=cand.fitness,
+        foe_spline=foe_s,
+        foe_physical=foe_ph,
+        n_estimation=n_est.astype(i32),
+        n_validation=n_val.astype(i32),
+        op_range=jnp.stack([lo, hi]),
+        relax_steps=pick.relaxation.num_steps.astype(i32),
+        result=result,
+    )

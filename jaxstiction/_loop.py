@@ -1,0 +1,97 @@
+"""The `Loop` record (one control loop's OP and PV) and `stack` for ragged batches."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+
+class Loop(eqx.Module):
+    """One control loop's record, as the estimators take it.
+
+    **Fields:**
+
+    - `op`: controller output OP (% of span), shape `(time,)`.
+    - `pv`: process variable PV (engineering units), shape `(time,)`.
+    - `mask`: 1.0 on real samples, 0.0 on padding (see [`jaxstiction.stack`][]);
+      padding always sits at the end of the record.
+    - `ts`: sampling time in seconds (a scalar array, so loops with different
+      sampling times batch together).
+
+    All fields are arrays, so a `Loop` passes through `jit` and `vmap`; a batch of
+    loops is a `Loop` whose arrays have a leading batch axis.
+    """
+
+    op: Float[Array, " time"]
+    pv: Float[Array, " time"]
+    mask: Float[Array, " time"]
+    ts: Float[Array, ""]
+
+    @property
+    def length(self) -> int:
+        """Number of real (unpadded) samples (host-side; not for traced code)."""
+        return int(np.asarray(self.mask).sum())
+
+
+def make_loop(op, pv, ts=1.0, dtype=None) -> Loop:
+    """A [`jaxstiction.Loop`][] from OP and PV arrays (no padding; `mask` all ones).
+
+    Values are not checked here; [`jaxstiction.check_loop`][] does that.
+    """
+    dtype = dtype or jnp.result_type(float)
+    op = jnp.asarray(np.asarray(op, float), dtype)
+    pv = jnp.asarray(np.asarray(pv, float), dtype)
+    if op.ndim != 1 or op.shape != pv.shape:
+        raise ValueError(f"`op` and `pv` must be 1-D arrays of one length, got shapes {op.shape} and {pv.shape}")
+    return Loop(op=op, pv=pv, mask=jnp.ones(op.shape, dtype), ts=jnp.asarray(float(ts), dtype))
+
+
+def pad(loop: Loop, length: int) -> Loop:
+    """`loop` padded at the end to `length` samples, mask off on the padding.
+
+    Padded samples repeat the last real value (so every stage sees finite, flat data
+    there); their mask is 0, so no stage scores them.
+    """
+    n = loop.op.shape[-1]
+    if length < n:
+        raise ValueError(f"cannot pad a {n}-sample loop to {length} samples")
+    extra = length - n
+
+    def ext(x, value=None):
+        fill = x[-1] if value is None else value
+        return jnp.concatenate([x, jnp.full((extra,), fill, x.dtype)])
+
+    return Loop(op=ext(loop.op), pv=ext(loop.pv), mask=ext(loop.mask, 0.0), ts=loop.ts)
+
+
+def stack(loops: Sequence[Loop], length: int | None = None) -> Loop:
+    """One batched [`jaxstiction.Loop`][] from loops of different lengths.
+
+    Every loop is padded at the end to the longest record (or to `length`), with
+    `mask` off on the padding, and the fields are stacked on a new leading axis:
+    `eqx.filter_vmap(jaxstiction.estimate)(jaxstiction.stack(loops))`.
+    """
+    loops = list(loops)
+    if not loops:
+        raise ValueError("`loops` is empty: nothing to stack")
+    n = max(lp.op.shape[-1] for lp in loops) if length is None else int(length)
+    padded = [pad(lp, n) for lp in loops]
+    return Loop(
+        op=jnp.stack([lp.op for lp in padded]),
+        pv=jnp.stack([lp.pv for lp in padded]),
+        mask=jnp.stack([lp.mask for lp in padded]),
+        ts=jnp.stack([jnp.asarray(lp.ts) for lp in padded]),
+    )
+
+
+def unstack(batch: Loop) -> list[Loop]:
+    """The members of a batched loop, each cut back to its real samples."""
+    out = []
+    for i in range(batch.op.shape[0]):
+        n = int(np.asarray(batch.mask[i]).sum())
+        out.append(Loop(op=batch.op[i, :n], pv=batch.pv[i, :n], mask=batch.mask[i, :n], ts=batch.ts[i]))
+    return out

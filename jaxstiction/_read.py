@@ -1,0 +1,434 @@
+"""Reading one control loop's record from a file, a DataFrame or a mapping.
+
+- [`jaxstiction.read_loop`][] reads one loop into a [`jaxstiction.Loop`][] (OP, PV,
+  mask and sampling time). Accepted sources:
+    - a delimited text file (`.csv`, `.tsv`, `.txt`): a header row naming the
+      columns, then one row per sample; `OP` and `PV` are required, `t` (or `time`,
+      seconds) and `SP` are optional, other columns are ignored. Comma, semicolon
+      and tab separators are recognised from the header line.
+    - a MATLAB `.mat` file holding one or more structs with fields `OP`, `PV` and
+      `Ts` (see `jaxstiction._read_mat`).
+    - a pandas DataFrame or a mapping with such columns or keys.
+- [`jaxstiction.find_loop_files`][] expands files and folders for batch screening.
+- [`jaxstiction.loop_name`][] gives the label of a loop read from a path.
+
+Only NumPy is needed here; pandas is never imported (a DataFrame passed in is used
+as is) and SciPy only when a `.mat` file is read. Every failure is a
+[`jaxstiction.LoopDataError`][] with a one-line message.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._checks import _as_column, _nonfinite_message, check_loop, LoopDataError
+from ._loop import Loop, make_loop
+
+
+__all__ = ["find_loop_files", "loop_name", "read_loop"]
+
+_CSV_SUFFIXES = (".csv", ".tsv", ".txt")
+_MAT_SUFFIXES = (".mat",)
+_COLUMN = {"op": "OP", "pv": "PV", "sp": "SP", "t": "t"}
+
+
+# ------------------------------------------------------------------------- helpers
+
+
+def _norm(key: object) -> str:
+    return "".join(str(key).split()).lower()
+
+
+def _short(text: object, limit: int = 30) -> str:
+    s = " ".join(str(text).split())
+    return s if len(s) <= limit else s[: limit - 3] + "..."
+
+
+def _found(keys: Iterable[object], limit: int = 12) -> str:
+    keys = [_short(k) for k in keys]
+    shown = ", ".join(keys[:limit])
+    if len(keys) > limit:
+        shown += f", ... ({len(keys) - limit} more)"
+    return shown or "none"
+
+
+def _match_columns(keys: Iterable[object], where: str) -> dict[str, object]:
+    """Map the canonical names `op, pv, sp, t` to the original keys present in `keys`.
+
+    Matching is case-insensitive after stripping spaces; `time` is accepted for `t`.
+    Raises when `OP` or `PV` is missing or a name matches twice.
+    """
+    keys = list(keys)
+    aliases = {"op": "op", "pv": "pv", "sp": "sp", "t": "t", "time": "t"}
+    out: dict[str, object] = {}
+    for key in keys:
+        canon = aliases.get(_norm(key))
+        if canon is None:
+            continue
+        if canon in out:
+            raise LoopDataError(
+                f"ambiguous columns {_short(out[canon])!r} and {_short(key)!r} "
+                f"in {where} (both read as `{_COLUMN[canon]}`)"
+            )
+        out[canon] = key
+    for canon in ("op", "pv"):
+        if canon not in out:
+            raise LoopDataError(
+                f"`{canon.upper()}` column missing in {where} (found: {_found(keys)})"
+            )
+    return out
+
+
+def _positive_ts(value: object, what: str, where: str) -> float:
+    try:
+        ts = float(np.asarray(value, dtype=np.float64).reshape(-1)[0])
+    except (TypeError, ValueError, IndexError):
+        raise LoopDataError(
+            f"{what} in {where} is not a number: {_short(value)!r}"
+        ) from None
+    if not (math.isfinite(ts) and ts > 0):
+        raise LoopDataError(f"{what} in {where} must be positive, got {ts:g}")
+    return ts
+
+
+def _ts_from_t(t: np.ndarray, where: str) -> float | None:
+    if t.shape[0] < 2:
+        return None
+    # rounded to 12 significant digits so that 0.2 recorded as decimals reads 0.2
+    step = float(f"{float(np.median(np.diff(t))):.12g}")
+    if not step > 0:
+        raise LoopDataError(
+            f"`t` is not increasing in {where} (median time step {step:g} s); "
+            "fix the time column or give the sampling time explicitly (ts)"
+        )
+    return step
+
+
+def _finish(
+    cols: Mapping[str, np.ndarray | None],
+    *,
+    where: str,
+    check_name: str,
+    ts: float | None,
+    file_ts: object,
+) -> Loop:
+    """Shared tail of all readers: checks, sampling-time precedence, the `Loop`.
+
+    SP and t are checked (length, NaN/inf) but not kept; t only gives the sampling
+    time.
+    """
+    op, pv = check_loop(
+        cols["op"], cols["pv"], min_length=1, name=check_name, require_variation=False
+    )
+    n = op.shape[0]
+    extra: dict[str, np.ndarray | None] = {}
+    for canon, column in (("sp", "SP"), ("t", "t")):
+        arr = cols.get(canon)
+        if arr is None:
+            extra[canon] = None
+            continue
+        arr = _as_column(arr, column, f"{check_name}: ")
+        if arr.shape[0] != n:
+            raise LoopDataError(
+                f"{check_name}: `OP` has {n} samples but `{column}` has {arr.shape[0]}"
+            )
+        if canon == "sp":
+            msg = _nonfinite_message(arr, "SP")
+            if msg is not None:
+                raise LoopDataError(f"{check_name}: {msg}")
+        extra[canon] = arr
+    if extra["t"] is not None:
+        msg = _nonfinite_message(extra["t"], "t")
+        if msg is not None:
+            raise LoopDataError(f"{check_name}: {msg}")
+    if ts is not None:
+        ts_val = _positive_ts(ts, "the sampling time `ts`", where)
+    else:
+        ts_val = None
+        if extra["t"] is not None:
+            ts_val = _ts_from_t(extra["t"], where)
+        if ts_val is None and file_ts is not None:
+            ts_val = _positive_ts(file_ts, "`Ts`", where)
+        if ts_val is None:
+            ts_val = 1.0
+    return make_loop(op, pv, ts_val)
+
+
+# ----------------------------------------------------------------------------- CSV
+
+
+def _parse_number(cell: str) -> float:
+    cell = cell.strip()
+    if cell == "":
+        return math.nan
+    return float(cell)
+
+
+def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise LoopDataError(f"cannot read {where}: {exc.strerror or exc}") from None
+    if not raw.strip():
+        raise LoopDataError(f"{where} is empty")
+    controls = sum(raw.count(bytes([c])) for c in (*range(0, 9), *range(14, 32)))
+    if controls > 0.01 * len(raw):
+        raise LoopDataError(f"{where} is not a text CSV file (binary content)")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")
+    header_line = next(ln for ln in text.splitlines() if ln.strip())
+    counts = {d: header_line.count(d) for d in (",", ";", "\t")}
+    delimiter = max(counts, key=lambda d: counts[d]) if any(counts.values()) else ","
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    try:
+        header: list[str] | None = None
+        for row in reader:
+            if any(cell.strip() for cell in row):
+                header = row
+                break
+        assert header is not None
+        columns = _match_columns(header, where)
+        index = {canon: header.index(key) for canon, key in columns.items()}  # type: ignore[arg-type]
+        data: dict[str, list[float]] = {canon: [] for canon in index}
+        need = max(index.values()) + 1
+        for row in reader:
+            if not any(cell.strip() for cell in row):
+                continue
+            if len(row) < need:
+                raise LoopDataError(
+                    f"line {reader.line_num} of {where} has {len(row)} fields, "
+                    f"expected {len(header)} as in the header"
+                )
+            for canon, j in index.items():
+                try:
+                    data[canon].append(_parse_number(row[j]))
+                except ValueError:
+                    column = _COLUMN[canon]
+                    raise LoopDataError(
+                        f"non-numeric value {_short(row[j])!r} in column `{column}` "
+                        f"at line {reader.line_num} of {where}"
+                    ) from None
+    except csv.Error as exc:
+        raise LoopDataError(f"{where} is not a readable CSV file ({exc})") from None
+    if not data["op"]:
+        raise LoopDataError(f"{where} has a header but no data rows")
+    out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
+    for canon, values in data.items():
+        out[canon] = np.asarray(values, dtype=np.float64)
+    return out
+
+
+
+
+# ------------------------------------------------------------------- DataFrame/dict
+
+
+def _is_dataframe(obj: object) -> bool:
+    return (
+        type(obj).__module__.split(".")[0] == "pandas"
+        and hasattr(obj, "columns")
+        and hasattr(obj, "index")
+    )
+
+
+def _frame_column(df: Any, key: object, column: str, where: str) -> np.ndarray:
+    series = df[key]
+    if getattr(series, "ndim", 1) != 1:
+        raise LoopDataError(f"ambiguous column `{column}` in {where} (appears twice)")
+    try:
+        return np.asarray(series.to_numpy(dtype=np.float64, na_value=np.nan))
+    except (TypeError, ValueError):
+        return _as_column(series.to_numpy(dtype=object), column, f"{where}: ")
+
+
+def _frame_time(df: Any) -> np.ndarray | None:
+    """Seconds from a DatetimeIndex/TimedeltaIndex, else `None`."""
+    idx = df.index
+    kind = getattr(getattr(idx, "dtype", None), "kind", "")
+    if kind not in ("M", "m") or len(idx) == 0:
+        return None
+    try:
+        if kind == "M":
+            idx = idx - idx[0]
+        return np.asarray(idx.total_seconds(), dtype=np.float64)
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
+def _read_frame(df: Any, where: str) -> dict[str, np.ndarray | None]:
+    columns = _match_columns(list(df.columns), where)
+    out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
+    for canon, key in columns.items():
+        column = _COLUMN[canon]
+        out[canon] = _frame_column(df, key, column, where)
+    if out["t"] is None:
+        out["t"] = _frame_time(df)
+    return out
+
+
+def _read_mapping(
+    m: Mapping, where: str
+) -> tuple[dict[str, np.ndarray | None], object]:
+    columns = _match_columns(list(m.keys()), where)
+    out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
+    for canon, key in columns.items():
+        column = _COLUMN[canon]
+        out[canon] = _as_column(m[key], column, f"{where}: ")
+    file_ts = None
+    for key, value in m.items():
+        if _norm(key) == "ts":
+            file_ts = value
+            break
+    return out, file_ts
+
+
+# --------------------------------------------------------------------------- public
+
+
+def read_loop(
+    source: str | os.PathLike | Mapping[str, Any] | Any,
+    *,
+    ts: float | None = None,
+    name: str | None = None,
+) -> Loop:
+    """Read one control loop into a [`jaxstiction.Loop`][].
+
+    **Arguments:**
+
+    - `source`: one of
+        - a path (`str` or `Path`) to a **CSV** file (`.csv`, also `.tsv`/`.txt`)
+          with a header: columns `OP` and `PV` required, `t` (seconds; `time` is
+          accepted too) and `SP` optional, other columns ignored; names match
+          case-insensitively after stripping spaces; comma, semicolon or tab
+          separated. Empty cells read as NaN (and are then reported).
+        - a path to a MATLAB **`.mat`** file in the International Stiction Database
+          layout: a struct with fields `OP`, `PV`, `Ts` (and optionally `SP`),
+          possibly nested in other structs, e.g. `cdata.chemicals.loop23`; or
+          top-level variables `OP`, `PV`, `Ts`. When the file holds several loops,
+          `name` picks one: the dotted path or its last part (see
+          [`jaxstiction.list_mat_loops`][]). Needs SciPy.
+        - a pandas **DataFrame** with such columns (a DatetimeIndex or
+          TimedeltaIndex counts as `t` when there is no `t` column).
+        - a **mapping** (e.g. `dict`) with keys `OP`, `PV`, optionally `t`, `SP`, `Ts`.
+    - `ts`: sampling time in seconds. Precedence: this argument; else the median
+      step of `t`; else the file's `Ts` (`.mat`, mapping); else 1.0.
+    - `name`: for a `.mat` file with several loops, which one; for a DataFrame or a
+      mapping, the label used in error messages (default `"loop"`). Ignored for CSV
+      files. (To label a loop read from a path, use [`jaxstiction.loop_name`][].)
+
+    **Returns:** a [`jaxstiction.Loop`][] with `op`, `pv`, `mask` (all ones) and
+    `ts`. `SP` and `t` are checked (length, NaN/inf) but not returned; `t` only
+    gives the sampling time.
+
+    **Raises:** [`jaxstiction.LoopDataError`][] (a `ValueError`) with a one-line
+    message naming the file and the problem: file not found, unreadable or not CSV,
+    unknown extension, missing column, non-numeric value (column and line),
+    mismatched lengths, NaN/inf, empty record, non-increasing `t`. A constant OP or PV
+    is *not* rejected here; the estimators check that with
+    [`jaxstiction.check_loop`][].
+    """
+    file_ts: object = None
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        where = f"'{os.fspath(source)}'"
+        if not path.exists():
+            raise LoopDataError(f"file not found: {where}")
+        if path.is_dir():
+            raise LoopDataError(f"{where} is a folder, not a loop file")
+        suffix = path.suffix.lower()
+        if suffix in _CSV_SUFFIXES:
+            cols = _read_csv(path, where)
+        elif suffix in _MAT_SUFFIXES:
+            from ._read_mat import _read_mat
+
+            cols, file_ts = _read_mat(path, where, name)
+        else:
+            raise LoopDataError(
+                f"unknown file type {path.suffix or '(no extension)'!r} for {where}; "
+                "expected .csv or .mat"
+            )
+        check_name = path.name
+    elif _is_dataframe(source):
+        check_name = "loop" if name is None else name
+        where = f"DataFrame {check_name!r}"
+        cols = _read_frame(source, where)
+    elif isinstance(source, Mapping):
+        check_name = "loop" if name is None else name
+        where = f"mapping {check_name!r}"
+        cols, file_ts = _read_mapping(source, where)
+    else:
+        raise LoopDataError(
+            f"cannot read loop data from a {type(source).__name__}; pass a path to a "
+            ".csv or .mat file, a pandas DataFrame or a dict with OP and PV"
+        )
+    return _finish(cols, where=where, check_name=check_name, ts=ts, file_ts=file_ts)
+
+
+def loop_name(source: object) -> str:
+    """A label for a loop read from `source`: the file stem for a path, else `"loop"`.
+
+    `loop_name("data/CHEM23.csv") == "CHEM23"`.
+    """
+    if isinstance(source, (str, os.PathLike)):
+        return Path(source).stem
+    return "loop"
+
+
+def find_loop_files(
+    paths: str | os.PathLike | Iterable[str | os.PathLike],
+) -> list[Path]:
+    """Expand files and folders into a list of loop files for batch screening.
+
+    Files are kept as given (in the given order, duplicates dropped); a folder is
+    replaced by its `*.csv` and `*.mat` files (not recursive, case-insensitive
+    extension, hidden files skipped), sorted by name.
+
+    **Raises:** [`jaxstiction.LoopDataError`][] for a path that does not exist or a
+    folder without any `.csv`/`.mat` file.
+    """
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
+    out: list[Path] = []
+    seen: set[Path] = set()
+
+    def add(p: Path) -> None:
+        if p not in seen:
+            seen.add(p)
+            out.append(p)
+
+    for item in paths:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(
+                (
+                    c
+                    for c in p.iterdir()
+                    if c.is_file()
+                    and not c.name.startswith(".")
+                    and c.suffix.lower() in (".csv", ".mat")
+                ),
+                key=lambda c: c.name,
+            )
+            if not found:
+                raise LoopDataError(
+                    f"no .csv or .mat files in folder '{os.fspath(item)}'"
+                )
+            for c in found:
+                add(c)
+        elif p.exists():
+            add(p)
+        else:
+            raise LoopDataError(f"file not found: '{os.fspath(item)}'")
+    return out
+
+
