@@ -9,8 +9,8 @@ Compares, in one run and on the same loops,
 
 and shows how time grows with the record length N, the ARX order n, the knot count m
 and the batch size. Loops are paper_sim-like closed loops (BJ process, PI control,
-Kano stiction S=20, J=2, 5 % noise power; `jaxstiction._simulate.simulate_loop` with
-the paper_sim `LoopConfig`), one PRNG seed per loop.
+Kano stiction S=20, J=2, 5 % noise power; `jaxstiction.simulate_loop` with
+the paper_sim plant), one PRNG seed per loop.
 
     cd /work/main && PYTHONPATH=. python benchmarks/bench_relax.py [--quick]
 
@@ -41,7 +41,9 @@ import numpy as np
 import optimistix as optx
 
 from jaxstiction._relax import relax, relax_problem
-from jaxstiction._simulate import LoopConfig, simulate_loop
+from jaxstiction._blocks import Kano
+from jaxstiction._scenarios import nominal_model, paper_experiment
+from jaxstiction._simulate import simulate_loop
 from jaxstiction._spline import hysteresis_regressors, scale_input, uniform_knots
 
 
@@ -53,9 +55,9 @@ import reference as ref  # noqa: E402
 
 def simulate(batch, N, seed=0):
     """`batch` paper_sim-like loops of N samples (op, pv as NumPy arrays)."""
-    cfg = LoopConfig(stiction="kano", S=20.0, J=2.0)  # the paper_sim configuration
+    plant, exp = nominal_model(chain=(Kano(20.0, 2.0),)), paper_experiment()  # the paper_sim loop
     keys = jax.vmap(lambda s: jr.PRNGKey(s))(jnp.arange(seed, seed + batch))
-    rec = jax.jit(jax.vmap(lambda k: simulate_loop(cfg, k, N)))(keys)
+    rec = jax.vmap(lambda k: simulate_loop(plant, exp, k, N))(keys)
     return np.asarray(rec.op), np.asarray(rec.pv)
 
 

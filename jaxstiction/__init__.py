@@ -53,9 +53,9 @@ from ._models import (
     SplineValve as SplineValve,
 )
 from ._nominal import (
-    NominalModel as NominalModel,
+    nominal_to_dict as nominal_to_dict,
+    nominal_ts as nominal_ts,
     read_nominal as read_nominal,
-    simulate_nominal as simulate_nominal,
 )
 from ._physical import (
     fit_physical as fit_physical,

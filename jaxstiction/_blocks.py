@@ -4,9 +4,10 @@ Every block is an `eqx.Module` whose fields are its parameters, with
 
 - `init(u0) -> state`: the state of a block at rest at input `u0`;
 - `step(state, u) -> (state, out)`: one sample, usable inside `lax.scan`;
-- `initial_states(u0, count) -> states`: a batch (leading axis) of plausible
+- `initial_states(u_open, count) -> states`: a batch (leading axis) of candidate
   initial states when the state at the start of a record is unknown (a stuck valve
-  may be resting anywhere in its band, moving up or down); the default is `init(u0)`;
+  may have stopped anywhere, after travelling up or down), built from the opening
+  input samples `u_open`; the default is `init(u_open[0])` alone;
 - `__call__(u, state=None)`: the block run over a whole signal.
 
 Blocks on the **input side** sit between the controller output OP and the process
@@ -30,6 +31,15 @@ import jax.random as jr
 from jaxtyping import Array, Float
 
 
+def _levels(u_open, count: int):
+    """Running maximum and minimum of the opening samples `u_open`, at `count` times
+    spread over them: the input levels whose first crossing gives the distinct first
+    slip times there (every one of them when `count == len(u_open)`)."""
+    u = jnp.asarray(u_open)
+    idx = jnp.round(jnp.linspace(0, u.shape[0] - 1, count)).astype(jnp.int32)
+    return jax.lax.cummax(u)[idx], jax.lax.cummin(u)[idx]
+
+
 def _f(x) -> Array:
     """A parameter as an inexact JAX array (integers would truncate S, J)."""
     x = jnp.asarray(x)
@@ -51,9 +61,10 @@ class AbstractBlock(eqx.Module):
         """One sample: `(new_state, output)`."""
         raise NotImplementedError
 
-    def initial_states(self, u0, count: int):
-        """A batch of candidate initial states (leading axis) for an unknown start."""
-        return jax.tree.map(lambda t: jnp.asarray(t)[None], self.init(u0))
+    def initial_states(self, u_open, count: int):
+        """A batch of candidate initial states (leading axis) for an unknown start,
+        from the opening input samples `u_open` (see the module docstring)."""
+        return jax.tree.map(lambda t: jnp.asarray(t)[None], self.init(jnp.asarray(u_open)[0]))
 
     def __call__(self, u: Float[Array, " time"], state=None) -> Float[Array, " time"]:
         """The block's output over a whole signal `u`, from `state` (default: at rest
@@ -106,18 +117,27 @@ class Kano(AbstractBlock):
         stp = jnp.where(reverse | same, 0.0, stp)
         return (y, us, stp, d, u, du), y
 
-    def initial_states(self, u0, count: int):
-        # Stuck at u0 (the held position itself is a free level, see LoopModel), having
-        # stopped at `us` anywhere in [u0 - S, u0 + S], last travel up or down; plus the
-        # two moving states. Together these give every possible first slip.
-        u0 = jnp.asarray(u0)
-        r = jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype)
-        us = jnp.concatenate([u0 + self.S * r, u0 + self.S * r, u0[None], u0[None]])
-        d = jnp.concatenate([jnp.ones(count), -jnp.ones(count), jnp.ones(1), -jnp.ones(1)]).astype(u0.dtype)
-        stp = jnp.concatenate([jnp.ones(2 * count), jnp.zeros(2)]).astype(u0.dtype)
+    def initial_states(self, u_open, count: int):
+        # A stopped valve slips when the input first passes a level: after rising
+        # (d = +1) it slips up past M with us = M - J, or down past m with us = m + S;
+        # after falling, us = m + J (down) or M - S (up). M, m are the running max
+        # and min of the opening samples, so the candidates realise every distinct
+        # first slip there, to the sample; plus the two moving states. The held position itself is
+        # a free level (see LoopModel.initial_state).
+        up, dn = _levels(u_open, count)
+        u0 = jnp.asarray(u_open)[0]
+        S, J = self.S, self.J
+        one = jnp.ones_like(up)
+        us = jnp.concatenate([up - J, dn + S, dn + J, up - S, u0[None], u0[None]])
+        d = jnp.concatenate([one, one, -one, -one, jnp.ones((1,), up.dtype), -jnp.ones((1,), up.dtype)])
         k = us.shape[0]
-        y = jnp.full((k,), u0)
-        return (y, us, stp, d, jnp.full((k,), u0), jnp.zeros((k,), u0.dtype))
+        stp = jnp.concatenate([jnp.ones((k - 2,), up.dtype), jnp.zeros((2,), up.dtype)])
+        # moving: the previous input a hair behind in the travel direction
+        eps = 1e-9 * (1 + jnp.abs(u0))
+        u_prev = jnp.where(stp == 0, u0 - d * eps, u0)
+        du_prev = jnp.where(stp == 0, d * eps, 0.0)
+        y = jnp.where(stp == 0, u0 - d * (S - J) / 2, u0)
+        return (y, us, stp, d, u_prev, du_prev)
 
 
 class Choudhury(AbstractBlock):
@@ -156,13 +176,16 @@ class Choudhury(AbstractBlock):
         stuck = jnp.where(slip, 0.0, stuck)
         return (y, x_ss, stuck, v_new, direction, x), y
 
-    def initial_states(self, u0, count: int):
-        u0 = jnp.asarray(u0)
-        r = jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype)
-        xss = jnp.concatenate([u0 + self.S * r, u0 + self.S * r])
-        direction = jnp.concatenate([jnp.ones(count), -jnp.ones(count)]).astype(u0.dtype)
+    def initial_states(self, u_open, count: int):
+        # as Kano: stuck at levels that make the opening samples slip, either way
+        up, dn = _levels(u_open, count)
+        u0 = jnp.asarray(u_open)[0]
+        S, J = self.S, self.J
+        one = jnp.ones_like(up)
+        xss = jnp.concatenate([up - J, dn + S, dn + J, up - S])
+        direction = jnp.concatenate([one, one, -one, -one])
         k = xss.shape[0]
-        return (jnp.full((k,), u0), xss, jnp.ones((k,), u0.dtype), jnp.zeros((k,), u0.dtype), direction,
+        return (jnp.full((k,), u0), xss, jnp.ones((k,), up.dtype), jnp.zeros((k,), up.dtype), direction,
                 jnp.full((k,), u0))
 
 
@@ -193,11 +216,15 @@ class He(AbstractBlock):
         u_r = jnp.where(slip, s * fd, u_r)
         return (y, u, u_r), y
 
-    def initial_states(self, u0, count: int):
-        u0 = jnp.asarray(u0)
+    def initial_states(self, u_open, count: int):
+        # residual force such that the valve slips when the input passes a level
+        up, dn = _levels(u_open, count)
+        u0 = jnp.asarray(u_open)[0]
         fs = (self.S + self.J) / 2
-        ur = fs * jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype)
-        return (jnp.full((count,), u0), jnp.full((count,), u0), ur)
+        ur = jnp.clip(jnp.concatenate([fs - (up - u0), -fs - (dn - u0)]), -fs, fs)
+        k = ur.shape[0]
+        # reachable states keep u_prev - y - u_r constant (0 from rest): y = u0 - u_r
+        return (u0 - ur, jnp.full((k,), u0), ur)
 
 
 class Deadband(AbstractBlock):
@@ -216,9 +243,10 @@ class Deadband(AbstractBlock):
         y = jnp.clip(y, u - self.width / 2, u + self.width / 2)
         return (y,), y
 
-    def initial_states(self, u0, count: int):
-        u0 = jnp.asarray(u0)
-        return (u0 + self.width / 2 * jnp.linspace(-1.0, 1.0, count, dtype=u0.dtype),)
+    def initial_states(self, u_open, count: int):
+        # resting where the input leaves the band at a level of the opening samples
+        up, dn = _levels(u_open, count)
+        return (jnp.concatenate([up - self.width / 2, dn + self.width / 2]),)
 
 
 # ------------------------------------------------------------------- other input blocks

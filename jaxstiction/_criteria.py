@@ -23,7 +23,7 @@ class ScoreSettings(eqx.Module):
 
     init_fraction: float = eqx.field(static=True, default=0.2)
     init_min: int = eqx.field(static=True, default=50)
-    init_count: int = eqx.field(static=True, default=15)
+    init_count: int = eqx.field(static=True, default=40)
 
 
 def simulate_scored(model: LoopModel, op, pv, weights, settings: ScoreSettings = ScoreSettings()):

@@ -5,7 +5,6 @@ Polynomials are coefficient arrays from $q^0$: `b = [b0, b1, ...]`, `a = [1, a1,
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 from jaxtyping import Array, Float
 
 
@@ -68,16 +67,6 @@ def step_response(b, a, n: int):
     return lfilter(b, a, jnp.ones((n,), jnp.result_type(b, a, float)))
 
 
-def is_stable(a, margin=0.0):
-    """True when all roots of $z^{n_a} A(z^{-1})$ lie strictly inside the circle of
-    radius `1 - margin`."""
-    a = jnp.asarray(a)
-    if a.shape[0] <= 1:
-        return jnp.asarray(True)
-    roots = jnp.roots(a, strip_zeros=False)
-    return jnp.all(jnp.abs(roots) < 1.0 - margin)
-
-
 def lagged(x: Float[Array, " time"], n: int) -> Float[Array, "time lags"]:
     """Matrix whose column `k - 1` is `x(t - k)`, `k = 1..n`, zero before the record."""
     cols = [jnp.concatenate([jnp.zeros((k,), x.dtype), x[:-k]]) for k in range(1, n + 1)]
@@ -96,21 +85,3 @@ def fitness(y, yhat, mask=None):
     num = jnp.sqrt(jnp.sum(mask * (y - yhat) ** 2))
     den = jnp.sqrt(jnp.sum(mask * (y - mean) ** 2))
     return 100.0 * (1.0 - num / den)
-
-
-def lstsq(M, v, ridge=1e-14):
-    """Least squares $\\min_\\theta \\lVert M\\theta - v\\rVert$ by lineax QR, never by
-    normal equations.
-
-    Columns are scaled to unit norm first, then Tikhonov rows $\\sqrt{\\text{ridge}}\\,I$
-    are appended: masked (all-zero) columns stay well posed (their coefficient is 0)
-    while the solution moves by $O(\\text{ridge}/\\sigma_{min}^2)$ of the *scaled*
-    problem only.
-    """
-    k = M.shape[1]
-    norms = jnp.sqrt(jnp.sum(M**2, axis=0))
-    scale = jnp.where(norms > 0, norms, 1.0)
-    Ms = M / scale
-    Ms = jnp.concatenate([Ms, jnp.sqrt(ridge) * jnp.eye(k, dtype=M.dtype)], axis=0)
-    v = jnp.concatenate([v, jnp.zeros((k,), v.dtype)])
-    return lx.linear_solve(lx.MatrixLinearOperator(Ms), v, lx.QR(), throw=False).value / scale

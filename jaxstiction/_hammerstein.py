@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._filters import fitness, is_stable, lfilter, steady_state
+from ._filters import fitness, lfilter, steady_state
+from ._linalg import HouseholderQR, is_stable
 from ._reduce import asymptotic_weight, LowOrder, reduce_model, ReductionSolution
 from ._relax import relax, relax_problem, RelaxSolution
 from ._spline import hysteresis_regressors
@@ -114,7 +115,7 @@ def polish(model: HammersteinModel, phi, y, weights, beta_mask, *, max_delay: in
     theta0 = (beta0, model.linear.a, model.linear.b * sd, offset0, model.state)
     sol = optx.least_squares(
         resid,
-        optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10),
+        optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10, linear_solver=HouseholderQR()),
         theta0,
         max_steps=max_steps,
         throw=False,

@@ -18,7 +18,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._blocks import _f, AbstractBlock, run_chain
-from ._filters import lfilter, lstsq, steady_state
+from ._filters import lfilter, steady_state
+from ._linalg import lstsq
+from ._misc import chunked_vmap
 from ._spline import scale_input, spline_basis
 
 
@@ -94,8 +96,8 @@ class SplineValve(AbstractBlock):
         x = h * (basis @ self.beta[:p]) + (1 - h) * (basis @ self.beta[p:])
         return (h, ext, u), x
 
-    def initial_states(self, u0, count: int):
-        u = scale_input(jnp.asarray(u0), self.lo, self.hi)
+    def initial_states(self, u_open, count: int):
+        u = scale_input(jnp.asarray(u_open)[0], self.lo, self.hi)
         return (jnp.array([1.0, 0.0], u.dtype), jnp.stack([u, u]), jnp.stack([u, u]))
 
     @staticmethod
@@ -198,15 +200,15 @@ class LoopModel(eqx.Module):
         """Estimate the initial state from a record, as system-identification tools
         do before scoring a simulation.
 
-        Every candidate state of the chain (each block's `initial_states`, all
-        combinations) is run over `op`; for each, the level at which the chain output
+        Every candidate state of the chain (each block's `initial_states` from the
+        opening samples, the other blocks at rest) is run over `op`; for each, the level at which the chain output
         rests until it first moves and the process filter's state enter the
         simulation linearly and are found by least squares on the samples where
         `weights > 0` (typically the opening part of the record). The candidate with
         the smallest weighted error wins. Offsets and parameters are not touched.
         """
         op, pv, weights = _f(op), _f(pv), _f(weights)
-        cands = self._chain_candidates(op[0], count)
+        cands = self._chain_candidates(op, count)
         b, a = self.process.polynomials()
         s = b.shape[0] - 1
         add = self._output(jnp.zeros_like(op)) if self.output else 0.0  # additive output blocks
@@ -214,44 +216,59 @@ class LoopModel(eqx.Module):
         eye = jnp.eye(max(s, 1), dtype=op.dtype)[:s]
         free = jax.vmap(lambda z: lfilter(b, a, jnp.zeros_like(op), z), out_axes=1)(eye) if s else None
 
+        def whiten(v):
+            # prediction errors under the noise model: the maximum-likelihood fit
+            # (coloured noise would otherwise pass for a start-up transient)
+            return lfilter(self.noise.d, self.noise.c, v)
+
+        wfree = None if free is None else jax.vmap(whiten, in_axes=1, out_axes=1)(free)
+
         def one(states):
             x = self.valve(op, states)
             pre = jnp.cumprod(x == x[0]).astype(op.dtype)
             forced = lfilter(b, a, (1 - pre) * (x - self.op_offset))
             hold = lfilter(b, a, pre)
-            cols = hold[:, None] if free is None else jnp.concatenate([hold[:, None], free], axis=1)
-            r = target0 - forced
-            th = lstsq(cols * weights[:, None], r * weights, 1e-12)
-            err = jnp.sum(weights * (r - cols @ th) ** 2)
+            wcols = whiten(hold)[:, None] if free is None else jnp.concatenate([whiten(hold)[:, None], wfree], axis=1)
+            r = whiten(target0 - forced)
+            th = lstsq(wcols * weights[:, None], r * weights, 1e-12)
+            err = jnp.sum(weights * (r - wcols @ th) ** 2)
             return jnp.where(jnp.isfinite(err), err, jnp.inf), th
 
-        errs, ths = jax.lax.map(one, cands)
+        # vmapped (the scans then run once over a batch of candidates), in chunks
+        # that bound memory on long records
+        chunk = int(max(1, min(256, 2_000_000 // max(op.shape[0], 1))))
+        errs, ths = chunked_vmap(lambda c: one(c), (cands,), chunk)
         i = jnp.argmin(errs)
         th = ths[i]
         chain = jax.tree.map(lambda t: t[i], cands)
         out = tuple(blk.init(self.pv_offset) for blk in self.output)
         return InitialState(chain, th[0] + self.op_offset, jnp.asarray(True), th[1:], out)
 
-    def _chain_candidates(self, op0, count: int):
-        """All combinations of the blocks' candidate initial states (leading axis)."""
-        op0 = jnp.asarray(op0)
-        per, v = [], op0
-        for blk in self.chain:
-            per.append(blk.initial_states(v, count))
-            _, v = blk.step(blk.init(v), v)
-        sizes = [jax.tree.leaves(p)[0].shape[0] if jax.tree.leaves(p) else 1 for p in per]
-        total = 1
-        for n in sizes:
-            total *= n
-        idx = jnp.arange(total)
-        out, stride = [], total
-        for p, n in zip(per, sizes):
-            stride //= n
-            k = (idx // stride) % n
-            out.append(jax.tree.map(lambda t: t[k], p) if jax.tree.leaves(p) else p)
+    def _chain_candidates(self, op, count: int):
+        """Candidate initial states of the chain (leading axis): each block's own
+        candidates in turn, the other blocks at rest (a union, not all combinations:
+        in a loop model at most one block has a hidden memory worth searching)."""
+        op = jnp.asarray(op)
         if not self.chain:
-            return jnp.zeros((1,), op0.dtype)  # one (empty) candidate
-        return tuple(out)
+            return jnp.zeros((1,), op.dtype)  # one (empty) candidate
+        n_open = min(op.shape[0], max(count, 1))
+        rest, _ = self._chain_init(op[0])
+        # each block's input over the opening samples, from the rest start
+        inputs, v = [], op[:n_open]
+        for blk, s0 in zip(self.chain, rest):
+            inputs.append(v)
+            _, v = jax.lax.scan(lambda s, x, b=blk: b.step(s, x), s0, v)
+        groups = []
+        for i, blk in enumerate(self.chain):
+            cand = blk.initial_states(inputs[i], count)
+            leaves = jax.tree.leaves(cand)
+            k = leaves[0].shape[0] if leaves else 1
+            states = tuple(
+                cand if j == i else jax.tree.map(lambda t: jnp.broadcast_to(jnp.asarray(t), (k,) + jnp.shape(t)), r)
+                for j, r in enumerate(rest)
+            )
+            groups.append(states)
+        return jax.tree.map(lambda *xs: jnp.concatenate(xs), *groups)
 
     # ----------------------------------------------------------------- predict
 

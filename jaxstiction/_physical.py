@@ -14,7 +14,8 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._blocks import Kano
-from ._filters import is_stable, lagged, lfilter, lstsq as _lstsq, steady_state
+from ._filters import lagged, lfilter, steady_state
+from ._linalg import HouseholderQR, is_stable, lstsq as _lstsq
 from ._misc import chunked_vmap
 from ._reduce import LowOrder
 from ._spline import scale_input
@@ -32,6 +33,8 @@ class PhysicalSettings(eqx.Module):
       unknown initial valve state, tried in the line searches and the final stage.
     - `refine_S`: S points of the stage-2 grid; `polish_starts`, `line`, `rounds`:
       alternating fine line searches in S and J from that many stage-2 points.
+    - `chunk`, `memory_budget`: grid points evaluated at once (at most `chunk`, and
+      fewer when their regressors would exceed `memory_budget` bytes).
     - `arx_order`: order of the least-squares linear part on the coarse grid.
     - `order`: order of the output-error linear part.
     - `max_delay`: delays 1..`max_delay` are tried.
@@ -49,6 +52,7 @@ class PhysicalSettings(eqx.Module):
     final: int = eqx.field(static=True, default=5)
     oe_steps: int = eqx.field(static=True, default=40)
     chunk: int = eqx.field(static=True, default=64)
+    memory_budget: int = eqx.field(static=True, default=100_000_000)
     init_count: int = eqx.field(static=True, default=5)
     polish_starts: int = eqx.field(static=True, default=3)
     line: int = eqx.field(static=True, default=41)
@@ -72,8 +76,8 @@ def arx_loss(x, y, weights, order: int, delay):
 
 def valve_from(op, S, J, weights, burn: int, start, count: int):
     """Kano valve position for `op` from candidate initial state number `start` of
-    `Kano.initial_states(op[0], count)` (`start = count // 2` is the default start:
-    stopped at `op[0]`, last travel up), and the weights of the samples from its first
+    `Kano.initial_states(op[:8 * count], count)` (`start = -1`, the last, is the
+    default start: at rest at `op[0]`, last travel up), and the weights of the samples from its first
     move on (plus `burn` samples of linear transient).
 
     Before its first move the valve rests at an unknown position; those samples are
@@ -81,7 +85,10 @@ def valve_from(op, S, J, weights, burn: int, start, count: int):
     unknown start does not decide the search.
     """
     blk = Kano(S, J)
-    state = jax.tree.map(lambda t: t[start], blk.initial_states(op[0], count))
+    cands = blk.initial_states(op[: 8 * count], count)
+    rest = blk.init(op[0])
+    cands = jax.tree.map(lambda c, r: jnp.concatenate([c, jnp.asarray(r)[None]]), cands, rest)
+    state = jax.tree.map(lambda t: t[start], cands)
     x = blk(op, state)
     moved = x != x[0]
     first = jnp.where(jnp.any(moved), jnp.argmax(moved), op.shape[0])
@@ -146,7 +153,8 @@ def fit_oe(x, y, weights, order: int, delay, max_delay: int, max_steps=40) -> tu
     c0 = jnp.sum(weights * (y - m0.simulate(x, max_delay))) / jnp.sum(weights)
     theta0 = (a0, b0, c0, theta0[3], z1, z1)
     sol = optx.least_squares(
-        resid, optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9), theta0, max_steps=max_steps, throw=False
+        resid, optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9, linear_solver=HouseholderQR()), theta0,
+        max_steps=max_steps, throw=False,
     )
     m = model(sol.value)
     ok = is_stable(m.linear.polynomials(max_delay)[1])
@@ -203,8 +211,8 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     def charged(v, wb):
         return jnp.where(jnp.sum(wb) >= 0.5 * count, v, jnp.inf)
 
-    default = settings.init_count // 2
-    starts_all = jnp.arange(2 * settings.init_count + 2)
+    starts_all = jnp.arange(4 * settings.init_count + 3)
+    default = starts_all[-1]
 
     def arx_at(s, j, ds, cands):
         def one(c):
@@ -217,7 +225,11 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
         return jnp.min(loss), ds[flat % ds.shape[0]], cands[flat // ds.shape[0]]
 
     def search(S, J, ds=delays, cands=jnp.array([default])):
-        return chunked_vmap(lambda s, j: arx_at(s, j, ds, cands), (S, J), settings.chunk)
+        # Chunk size from a memory budget: each grid point holds (starts x delays)
+        # regressor matrices of the record's length.
+        per_point = op.shape[0] * cands.shape[0] * ds.shape[0] * (2 * settings.arx_order + 4)
+        chunk = int(max(1, min(settings.chunk, settings.memory_budget // (8 * per_point))))
+        return chunked_vmap(lambda s, j: arx_at(s, j, ds, cands), (S, J), chunk)
 
     # Stage 1: S in [0, max_band * span], J = S * fraction, every delay.
     Sg = jnp.linspace(0.0, settings.max_band, settings.num_S, dtype=dtype) * span
@@ -313,14 +325,17 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
 
     S_int = interval(Sf, hs)
     J_int = interval(Jf, hj)
-    # The loss is piecewise constant in (S, J) (slip events move at thresholds), so the
-    # arg-min sits anywhere on a flat cell, often at its edge. The point estimate is the
-    # member of the 95 % region nearest to the region's centroid: the most margin to
-    # the thresholds, hence the best chance of the same events on new data.
-    cS = jnp.sum(jnp.where(inside, Sf, 0.0)) / jnp.sum(inside)
+    # The loss is piecewise constant in (S, J) (slip events move at thresholds), so any
+    # member of the 95 % region fits the data as well as the arg-min. Their errors on
+    # new data are not symmetric: a model valve with S a little too large stays stuck
+    # through an excursion that moved the real valve, and the simulation then loses
+    # the real limit cycle altogether, while S a little too small only moves a slip
+    # by a sample. The point estimate is therefore the region's smallest S, and at
+    # that S the J nearest the region's centroid.
     cJ = jnp.sum(jnp.where(inside, Jf, 0.0)) / jnp.sum(inside)
-    dist = ((Sf - cS) / hs) ** 2 + ((Jf - cJ) / jnp.maximum(hj, 1e-12)) ** 2
-    b = jnp.argmin(jnp.where(inside, dist, jnp.inf))
+    minS = jnp.min(jnp.where(inside, Sf, jnp.inf))
+    lowest = inside & (Sf <= minS + 1e-12 * (1 + jnp.abs(minS)))
+    b = jnp.argmin(jnp.where(lowest, jnp.abs(Jf - cJ), jnp.inf))
     best = models_at(models, b)
     noise = models_at(noises, b)
     return PhysicalFit(

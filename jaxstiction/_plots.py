@@ -217,8 +217,17 @@ def _model_fit(result, validation_start, noise_free) -> Figure:
         a.set_ylabel("PV (engineering units)")
         a.grid(alpha=0.3)
     ax.set_title(f"{result.name}: model fit, fitness {result.fitness:.1f} % ({scored})")
+    # Axis limits come from the measured data, so a run-away curve (the paper's
+    # literal method can diverge) cannot flatten the picture; say when one leaves it.
+    span = float(np.ptp(pv)) or 1.0
+    lo_y, hi_y = float(pv.min()) - 0.15 * span, float(pv.max()) + 0.15 * span
     for a in (ax, zoom):
+        a.set_ylim(lo_y, hi_y)
         _headroom(a)
+    outside = [lab for lab, c in (("paper's method", paper), ("model", sim)) if np.any((c < lo_y) | (c > hi_y))]
+    if outside:
+        ax.text(0.01, 0.02, f"{' and '.join(outside)} leave the plotted range (limits from the measured PV)",
+                transform=ax.transAxes, fontsize=8, color="0.3", va="bottom")
     zoom.legend(loc="upper center", fontsize=8, ncol=4)
     zoom.set_title(f"first {stop - first} samples of the scored part ({scored})", fontsize=10)
     zoom.set_xlabel("time (s)")

@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._filters import freq_response, is_stable, lagged, lfilter, lstsq as _lstsq
+from ._filters import freq_response, lagged, lfilter
+from ._linalg import HouseholderQR, is_stable, lstsq as _lstsq
 
 
 def welch(x, e, seg: int, weights=None):
@@ -121,7 +122,7 @@ def reduce_model(
     orders = jnp.repeat(jnp.arange(1, L + 1), D)
     delays = jnp.tile(jnp.arange(1, D + 1), L)
     sw = jnp.sqrt(weight)
-    solver = optx.GaussNewton(rtol=rtol, atol=atol)
+    solver = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=HouseholderQR())
 
     def one(order, delay):
         init = _sk_init(Gn, sw, w, order, delay, L)
@@ -200,7 +201,7 @@ def fit_noise_model(v, weights, *, order: int = 1, max_steps=100) -> NoiseModel:
 
     sol = optx.least_squares(
         resid,
-        optx.GaussNewton(rtol=1e-8, atol=1e-10),
+        optx.GaussNewton(rtol=1e-8, atol=1e-10, linear_solver=HouseholderQR()),
         (jnp.zeros((order,), dtype), d0),
         max_steps=max_steps,
         throw=False,

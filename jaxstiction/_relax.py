@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
-from ._filters import lagged, lstsq as _lstsq
+from ._filters import lagged
+from ._linalg import lstsq as _lstsq, qr_r
 
 
 class RelaxProblem(eqx.Module):
@@ -49,7 +50,7 @@ def relax_problem(y, phi, order: int, weights=None) -> RelaxProblem:
     w = jnp.ones((N,), y.dtype) if weights is None else weights
     w = w * (jnp.arange(N) >= n)
     A = jnp.concatenate([Z, y[:, None]], axis=1) * w[:, None]
-    Rfull = jnp.linalg.qr(A, mode="r")
+    Rfull = qr_r(A)
     k = Z.shape[1]
     phic = (phi - jnp.sum(w[:, None] * phi, 0) / jnp.sum(w)) * w[:, None]
     cov = phic.T @ phic / jnp.sum(w)

@@ -74,11 +74,6 @@ def _run(plant: LoopModel, exp: Experiment, r, v_unit, alpha):
     """One closed-loop pass for noise gain `alpha`: `(op, pv, pv_clean, valve)`."""
     dtype = r.dtype
     b, a = plant.process.polynomials()
-    if not isinstance(b, jax.core.Tracer) and float(b[0]) != 0.0:
-        raise ValueError(
-            f"the plant's process has b[0] = {float(b[0])} with no delay: the closed loop would be algebraic; "
-            "set b[0] = 0 or a delay >= 1"
-        )
     off = plant.op_offset.astype(dtype)
     kc = exp.kc.astype(dtype)
     lo, hi = exp.op_limits.astype(dtype)[0], exp.op_limits.astype(dtype)[1]
@@ -127,7 +122,15 @@ def _run(plant: LoopModel, exp: Experiment, r, v_unit, alpha):
     return out
 
 
-@eqx.filter_jit
+def _check_causal(plant: LoopModel):
+    b, _ = plant.process.polynomials()
+    if not isinstance(b, jax.core.Tracer) and b.ndim == 1 and float(b[0]) != 0.0:
+        raise ValueError(
+            f"the plant's process has b[0] = {float(b[0])} with no delay: the closed loop would be algebraic; "
+            "set b[0] = 0 or a delay >= 1"
+        )
+
+
 def simulate_loop(plant: LoopModel, experiment: Experiment, key: PRNGKeyArray, n: int) -> LoopRecord:
     """Simulate `n` samples of `plant` in closed loop under `experiment`.
 
@@ -146,6 +149,12 @@ def simulate_loop(plant: LoopModel, experiment: Experiment, key: PRNGKeyArray, n
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 2:
         raise ValueError(f"`n` must be a Python int >= 2, got {n!r}.")
+    _check_causal(plant)
+    return _simulate_loop(plant, experiment, key, n)
+
+
+@eqx.filter_jit
+def _simulate_loop(plant: LoopModel, experiment: Experiment, key: PRNGKeyArray, n: int) -> LoopRecord:
     dtype = jnp.result_type(plant.op_offset, experiment.kc)
     k_sign, k_switch, k_e, _ = jr.split(key, 4)
     sign0 = jnp.where(jr.bernoulli(k_sign), 1.0, -1.0).astype(dtype)

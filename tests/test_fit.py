@@ -72,7 +72,7 @@ def test_chem23_held_out_last_third(chem23):
     r = js.fit(loop.op, loop.pv, ts=loop.ts, validate=1 / 3, name="CHEM23")
     assert r.n_validation == 500
     assert r.fitness >= 76.0
-    # predict() on the full record reproduces the stored simulation of the chosen
-    # model when that model has no initial-state estimate to differ by.
-    sim = r.predict(loop.op, pv0=float(loop.pv[0]))
+    # predict() with the record's PV estimates the initial state as the score does
+    sim = r.predict(loop.op, loop.pv)
     assert sim.shape == loop.op.shape and np.all(np.isfinite(sim))
+    np.testing.assert_allclose(sim, r.pv_sim, rtol=1e-9, atol=1e-9)

@@ -1,24 +1,18 @@
-"""Tests for loop data and nominal model input (`_io`, `_checks`)."""
+"""Tests for loop data input (`_read`, `_read_mat`, `_checks`) and the `Loop` record
+(`_loop`); the nominal-model file is tested in `test_nominal.py`."""
 
-import json
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxstiction as js
 from jaxstiction._checks import check_loop, LoopDataError
-from jaxstiction._io import (
-    find_loop_files,
-    list_mat_loops,
-    LoopData,
-    NominalModel,
-    read_loop,
-    read_nominal,
-    simulate_nominal,
-)
+from jaxstiction._loop import Loop, make_loop, stack, unstack
+from jaxstiction._read import find_loop_files, loop_name, read_loop
+from jaxstiction._read_mat import list_mat_loops
 
-
-ISDB = Path(__file__).parents[2] / "shared/data/isdb"
 
 RNG = np.random.default_rng(0)
 N = 50
@@ -45,6 +39,15 @@ def raises_one_line(match, func, *args, **kwargs):
     return msg
 
 
+def assert_plain_loop(d, n):
+    """`d` is an unpadded `Loop` of `n` samples: mask all ones, scalar ts."""
+    assert isinstance(d, Loop)
+    assert d.op.shape == d.pv.shape == d.mask.shape == (n,)
+    assert d.ts.shape == ()
+    np.testing.assert_array_equal(d.mask, np.ones(n))
+    assert d.length == n
+
+
 # ------------------------------------------------------------------ CSV round trips
 
 
@@ -52,24 +55,30 @@ def test_csv_with_t(tmp_path):
     t = np.arange(N) * 2.5
     p = write_csv(tmp_path / "loop1.csv", ["t", "OP", "PV"], [t, OP, PV])
     d = read_loop(p)
-    assert isinstance(d, LoopData)
-    assert d.name == "loop1"
-    assert d.ts == pytest.approx(2.5)
-    assert d.op.dtype == np.float64 and d.pv.dtype == np.float64
+    assert_plain_loop(d, N)
+    assert float(d.ts) == pytest.approx(2.5)
+    # float64 because the tests enable x64 (conftest)
+    assert d.op.dtype == jnp.float64 and d.pv.dtype == jnp.float64
     np.testing.assert_allclose(d.op, OP, rtol=1e-9)
     np.testing.assert_allclose(d.pv, PV, rtol=1e-9)
-    np.testing.assert_allclose(d.t, t)
-    assert d.sp is None
-    assert len(d) == N and d.n == N
+    assert loop_name(p) == "loop1"
 
 
 def test_csv_without_t_defaults_ts_1_and_str_path(tmp_path):
     p = write_csv(tmp_path / "x.csv", ["OP", "PV"], [OP, PV])
     d = read_loop(str(p))
-    assert d.ts == 1.0 and d.t is None
-    np.testing.assert_allclose(d.time, np.arange(N))
-    d2 = read_loop(p, ts=0.2, name="mine")
-    assert d2.ts == 0.2 and d2.name == "mine"
+    assert_plain_loop(d, N)
+    assert float(d.ts) == 1.0
+    d2 = read_loop(p, ts=0.2, name="ignored for csv")
+    assert float(d2.ts) == 0.2
+    np.testing.assert_array_equal(d2.op, d.op)
+
+
+def test_loop_name():
+    assert loop_name("data/CHEM23.csv") == "CHEM23"
+    assert loop_name(Path("x/loop.v2.mat")) == "loop.v2"
+    assert loop_name({"OP": OP, "PV": PV}) == "loop"
+    assert js.loop_name is loop_name
 
 
 def test_csv_with_sp_odd_header_case_and_extra_columns(tmp_path):
@@ -78,11 +87,11 @@ def test_csv_with_sp_odd_header_case_and_extra_columns(tmp_path):
         [" Time ", "tag", " op", "Pv ", "s P"],
         [np.arange(N) * 10.0, np.zeros(N), OP, PV, SP],
     )
-    d = read_loop(p)
+    d = read_loop(p)  # SP is read and checked, but not part of the Loop
+    assert_plain_loop(d, N)
     np.testing.assert_allclose(d.op, OP)
     np.testing.assert_allclose(d.pv, PV)
-    np.testing.assert_allclose(d.sp, SP)
-    assert d.ts == 10.0
+    assert float(d.ts) == 10.0
 
 
 def test_csv_semicolon_bom_and_blank_lines(tmp_path):
@@ -96,13 +105,15 @@ def test_csv_semicolon_bom_and_blank_lines(tmp_path):
 
 def test_ts_precedence(tmp_path):
     p = write_csv(tmp_path / "a.csv", ["t", "OP", "PV"], [np.arange(N) * 4.0, OP, PV])
-    assert read_loop(p).ts == 4.0  # from t
-    assert read_loop(p, ts=7.0).ts == 7.0  # explicit wins
+    assert float(read_loop(p).ts) == 4.0  # from t
+    assert float(read_loop(p, ts=7.0).ts) == 7.0  # explicit wins
     m = {"OP": OP, "PV": PV, "Ts": 3.0}
-    assert read_loop(m).ts == 3.0  # file Ts
-    assert read_loop({**m, "t": np.arange(N) * 5.0}).ts == 5.0  # t beats Ts
-    assert read_loop(m, ts=2.0).ts == 2.0  # explicit beats Ts
-    assert read_loop({"OP": OP, "PV": PV}).ts == 1.0  # default
+    assert float(read_loop(m).ts) == 3.0  # file Ts
+    assert float(read_loop({**m, "t": np.arange(N) * 5.0}).ts) == 5.0  # t beats Ts
+    assert float(read_loop(m, ts=2.0).ts) == 2.0  # explicit beats Ts
+    assert float(read_loop({"OP": OP, "PV": PV}).ts) == 1.0  # default
+    # t recorded as decimals: the step is rounded to 12 significant digits
+    assert float(read_loop({"OP": OP, "PV": PV, "t": np.arange(N) * 0.2}).ts) == 0.2
 
 
 # ---------------------------------------------------------------- DataFrame / dict
@@ -112,19 +123,21 @@ def test_dataframe():
     pd = pytest.importorskip("pandas")
     df = pd.DataFrame({"OP ": OP, "pv": PV, "Sp": SP})
     d = read_loop(df, ts=0.5, name="df")
+    assert_plain_loop(d, N)
     np.testing.assert_allclose(d.op, OP)
-    np.testing.assert_allclose(d.sp, SP)
-    assert d.ts == 0.5 and d.name == "df"
+    np.testing.assert_allclose(d.pv, PV)
+    assert float(d.ts) == 0.5
     df2 = pd.DataFrame({"t": np.arange(N) * 2.0, "OP": OP, "PV": PV})
-    assert read_loop(df2).ts == 2.0
+    assert float(read_loop(df2).ts) == 2.0
 
 
 def test_dataframe_datetime_index():
     pd = pytest.importorskip("pandas")
     idx = pd.date_range("2024-01-01", periods=N, freq="5s")
     d = read_loop(pd.DataFrame({"OP": OP, "PV": PV}, index=idx))
-    assert d.ts == 5.0
-    assert d.t[0] == 0.0
+    assert float(d.ts) == 5.0
+    tidx = pd.to_timedelta(np.arange(N) * 3.0, unit="s")
+    assert float(read_loop(pd.DataFrame({"OP": OP, "PV": PV}, index=tidx)).ts) == 3.0
 
 
 def test_dataframe_bad_values():
@@ -134,16 +147,19 @@ def test_dataframe_bad_values():
     df = pd.DataFrame({"OP": OP, "PV": pv})
     msg = raises_one_line(r"`PV`.*non-numeric.*'oops'.*index 7", read_loop, df)
     assert "loop" in msg
+    # `name` labels the messages for a DataFrame or a mapping
+    msg = raises_one_line(r"`PV`.*non-numeric", read_loop, df, name="FIC101")
+    assert "FIC101" in msg
     raises_one_line(r"`PV` column missing", read_loop, pd.DataFrame({"OP": OP}))
 
 
 def test_dict_and_lists():
     d = read_loop({"op": list(OP), "PV": tuple(PV)}, name="d")
+    assert_plain_loop(d, N)
     np.testing.assert_allclose(d.op, OP)
-    assert d.name == "d"
     # column vectors are accepted
     d2 = read_loop({"OP": OP[:, None], "PV": PV[None, :]})
-    assert d2.op.shape == (N,)
+    assert_plain_loop(d2, N)
 
 
 # ------------------------------------------------------------------------- .mat
@@ -166,12 +182,13 @@ def _isdb_mat(path, n_loops=1):
 def test_mat_nested_isdb(tmp_path):
     p = _isdb_mat(tmp_path / "isdb.mat")
     d = read_loop(p)
-    assert d.name == "isdb"
-    assert d.ts == 10.0
+    assert_plain_loop(d, N)
+    assert float(d.ts) == 10.0
     np.testing.assert_allclose(d.op, OP)
     np.testing.assert_allclose(d.pv, PV)
-    assert read_loop(p, ts=1.0).ts == 1.0
+    assert float(read_loop(p, ts=1.0).ts) == 1.0
     assert list_mat_loops(p) == ["cdata.chemicals.loop23"]
+    assert js.list_mat_loops is list_mat_loops
 
 
 def test_mat_several_loops_need_name(tmp_path):
@@ -180,10 +197,10 @@ def test_mat_several_loops_need_name(tmp_path):
     assert "many.mat" in msg
     d = read_loop(p, name="loop24")
     np.testing.assert_allclose(d.op, OP + 1)
-    assert d.name == "loop24"
     d = read_loop(p, name="cdata.chemicals.loop25")
     np.testing.assert_allclose(d.op, OP + 2)
     raises_one_line(r"no loop named 'loop99'.*available", read_loop, p, name="loop99")
+    assert list_mat_loops(p) == [f"cdata.chemicals.loop{i}" for i in (23, 24, 25)]
 
 
 def test_mat_flat_variables(tmp_path):
@@ -191,8 +208,10 @@ def test_mat_flat_variables(tmp_path):
     p = tmp_path / "flat.mat"
     sio.savemat(str(p), {"OP": OP, "PV": PV, "Ts": 0.5, "SP": SP})
     d = read_loop(p)
-    assert d.ts == 0.5
-    np.testing.assert_allclose(d.sp, SP)
+    assert_plain_loop(d, N)
+    assert float(d.ts) == 0.5
+    np.testing.assert_allclose(d.pv, PV)
+    assert list_mat_loops(p) == [""]
 
 
 def test_mat_errors(tmp_path):
@@ -206,6 +225,7 @@ def test_mat_errors(tmp_path):
     m = tmp_path / "nopv.mat"
     sio.savemat(str(m), {"s": {"OP": OP, "PVX": PV, "PV_": PV}})
     raises_one_line(r"no loop", read_loop, m)
+    raises_one_line(r"file not found: '.*none\.mat'", list_mat_loops, tmp_path / "none.mat")
 
 
 # --------------------------------------------------------------- read_loop errors
@@ -289,7 +309,13 @@ def test_sp_and_t_problems(tmp_path):
     q = tmp_path / "t.csv"
     q.write_text("t,OP,PV\n5,1,2\n4,2,3\n3,3,4\n")
     raises_one_line(r"`t` is not increasing in '.*t\.csv'", read_loop, q)
-    assert read_loop(q, ts=2.0).ts == 2.0  # explicit ts overrides a broken t
+    assert float(read_loop(q, ts=2.0).ts) == 2.0  # explicit ts overrides a broken t
+    r = tmp_path / "tlen.csv"
+    r.write_text("OP,PV,t\n1,2,0\n2,3,\n")
+    raises_one_line(r"tlen\.csv: `t` has 1 NaN", read_loop, r)
+    raises_one_line(
+        r"`OP` has 50 samples but `SP` has 49", read_loop, {"OP": OP, "PV": PV, "SP": SP[:-1]}
+    )
 
 
 def test_bad_explicit_ts(tmp_path):
@@ -317,6 +343,7 @@ def test_mismatched_lengths_in_dict():
 def test_constant_op_is_read_but_flagged_by_check_loop(tmp_path):
     p = write_csv(tmp_path / "flat.csv", ["OP", "PV"], [np.full(N, 50.0), PV])
     d = read_loop(p)  # read_loop checks structure only
+    assert_plain_loop(d, N)
     raises_one_line(
         r"`OP` is constant .*without valve movement", check_loop, d.op, d.pv
     )
@@ -376,28 +403,74 @@ def test_error_message_is_always_one_line():
     assert str(e) == "first second third?"
 
 
-# ------------------------------------------------------------------------- split
+# ----------------------------------------------------------- Loop, stack, unstack
 
 
-def test_split():
-    d = LoopData(op=OP, pv=PV, sp=SP, t=np.arange(N) * 2.0, ts=2.0, name="s")
-    est, val = d.split(0.0)
-    assert est is d and val is d
-    est, val = d.split(0.3)
-    assert len(est) == 35 and len(val) == 15
-    np.testing.assert_allclose(np.r_[est.op, val.op], OP)
-    np.testing.assert_allclose(val.t, np.arange(35, N) * 2.0)
-    assert val.sp.shape == (15,) and val.ts == 2.0 and val.name == "s"
-    est, val = d.split(0.001)
-    assert len(val) == 1
-    for bad in (1.0, -0.1, float("nan")):
-        raises_one_line(r"fraction", d.split, bad)
+def _loops(lengths=(50, 80, 65), ts=(1.0, 2.0, 0.5)):
+    rng = np.random.default_rng(3)
+    return [make_loop(rng.normal(50, 5, n), rng.normal(10, 1, n), t) for n, t in zip(lengths, ts)]
 
 
-def test_loopdata_constructor_checks():
-    raises_one_line(r"`SP` has 3", LoopData, op=OP, pv=PV, sp=np.ones(3))
-    raises_one_line(r"sampling time must be positive", LoopData, op=OP, pv=PV, ts=-1.0)
-    assert "n=50" in repr(LoopData(op=OP, pv=PV))
+def test_make_loop():
+    d = make_loop(list(OP), PV, ts=2.0)
+    assert_plain_loop(d, N)
+    assert float(d.ts) == 2.0
+    np.testing.assert_array_equal(d.op, OP)
+    assert float(make_loop(OP, PV).ts) == 1.0
+    with pytest.raises(ValueError, match=r"one length, got shapes \(50,\) and \(49,\)"):
+        make_loop(OP, PV[:-1])
+    with pytest.raises(ValueError, match="1-D"):
+        make_loop(np.ones((3, 3)), np.ones((3, 3)))
+
+
+def test_stack_pads_and_masks():
+    loops = _loops()
+    batch = js.stack(loops)
+    assert isinstance(batch, Loop)
+    assert batch.op.shape == batch.pv.shape == batch.mask.shape == (3, 80)
+    assert batch.ts.shape == (3,)
+    np.testing.assert_array_equal(batch.mask.sum(axis=1), [50, 80, 65])
+    np.testing.assert_array_equal(batch.ts, [1.0, 2.0, 0.5])
+    for i, lp in enumerate(loops):
+        n = lp.op.shape[0]
+        np.testing.assert_array_equal(batch.op[i, :n], lp.op)
+        np.testing.assert_array_equal(batch.pv[i, :n], lp.pv)
+        np.testing.assert_array_equal(batch.mask[i, :n], 1.0)
+        np.testing.assert_array_equal(batch.mask[i, n:], 0.0)
+        # padding repeats the last real value
+        np.testing.assert_array_equal(batch.op[i, n:], lp.op[-1])
+        np.testing.assert_array_equal(batch.pv[i, n:], lp.pv[-1])
+    # a longer length pads every loop
+    assert stack(loops, length=100).op.shape == (3, 100)
+    with pytest.raises(ValueError, match="cannot pad"):
+        stack(loops, length=60)
+
+
+def test_unstack_round_trips():
+    loops = _loops()
+    back = js.unstack(js.stack(loops))
+    assert len(back) == 3
+    for a, b in zip(loops, back):
+        assert isinstance(b, Loop)
+        for field in ("op", "pv", "mask", "ts"):
+            x, y = np.asarray(getattr(a, field)), np.asarray(getattr(b, field))
+            assert x.shape == y.shape and x.dtype == y.dtype
+            np.testing.assert_array_equal(x, y)
+    assert [b.length for b in back] == [50, 80, 65]
+    assert unstack(stack(loops[:1]))[0].op.shape == (50,)
+
+
+def test_stack_empty():
+    with pytest.raises(ValueError, match="empty"):
+        js.stack([])
+
+
+def test_read_loops_stack(tmp_path):
+    a = write_csv(tmp_path / "a.csv", ["OP", "PV"], [OP, PV])
+    b = {"OP": OP[:30], "PV": PV[:30], "Ts": 2.0}
+    batch = stack([read_loop(a), read_loop(b)])
+    assert batch.op.shape == (2, N)
+    np.testing.assert_array_equal(batch.mask.sum(axis=1), [N, 30])
 
 
 # ------------------------------------------------------------------- find_loop_files
@@ -422,133 +495,13 @@ def test_find_loop_files(tmp_path):
     assert find_loop_files([]) == []
 
 
-# ------------------------------------------------------------------ nominal model
-
-
-NOMINAL = {
-    "Ts": 1.0,
-    "process": {"b": [0.0, 0.2, 0.1], "a": [1.0, -1.2, 0.5], "delay": 3},
-    "op_offset": 50.0,
-    "pv_offset": 10.0,
-    "valve": {"model": "linear"},
-}
-
-
-def _nominal(**changes):
-    m = json.loads(json.dumps(NOMINAL))
-    for key, value in changes.items():
-        target = m
-        *parents, last = key.split(".")
-        for p in parents:
-            target = target[p]
-        if value is None:
-            del target[last]
-        else:
-            target[last] = value
-    return m
-
-
-def test_read_nominal_file_and_dict(tmp_path):
-    p = tmp_path / "nominal.json"
-    p.write_text(json.dumps(NOMINAL))
-    m = read_nominal(p)
-    assert isinstance(m, NominalModel)
-    np.testing.assert_allclose(m.b, [0.0, 0.2, 0.1])
-    np.testing.assert_allclose(m.a, [1.0, -1.2, 0.5])
-    assert m.delay == 3 and m.op_offset == 50.0 and m.pv_offset == 10.0
-    assert m.valve == "linear" and m.S is None and m.ts == 1.0
-    assert read_nominal(m.to_dict()).to_dict() == m.to_dict()
-    k = read_nominal(_nominal(valve={"model": "Kano", "S": 3.0, "J": 1.0}))
-    assert k.valve == "kano" and k.S == 3.0 and k.J == 1.0
-    # defaults for optional keys
-    d = read_nominal({"Ts": 2, "process": {"b": [1.0], "a": [1.0]}})
-    assert d.delay == 0 and d.op_offset == 0.0 and d.valve == "linear"
-    assert read_nominal(_nominal(**{"process.delay": 2.0})).delay == 2
-
-
-@pytest.mark.parametrize(
-    "changes, match",
-    [
-        ({"process.a": [1.0, -1.05]}, r"nominal model is unstable: pole at 1\.05"),
-        ({"process.a": [1.0, -1.0]}, r"nominal model is unstable: pole at 1\b"),
-        ({"process.a": [1.0, 0.0, 1.21]}, r"unstable: pole at .*j \(modulus 1\.1\)"),
-        ({"process.a": [2.0, -1.0]}, r"process\.a\[0\] must be 1"),
-        ({"process.a": []}, r"process\.a is empty"),
-        ({"process.b": []}, r"process\.b is empty"),
-        ({"process.b": None}, r"missing key 'process\.b'"),
-        ({"process": None}, r"missing key 'process'"),
-        ({"Ts": None}, r"missing key 'Ts'"),
-        ({"Ts": -1}, r"Ts must be positive"),
-        ({"process.delay": -1}, r"delay must be ≥ 0"),
-        ({"process.delay": 1.5}, r"delay must be a whole number"),
-        ({"process.delay": "2"}, r"delay must be a whole number"),
-        ({"process.b": [1.0, "x"]}, r"process\.b\[1\] must be a number"),
-        ({"valve": {"model": "magic"}}, r"unknown valve\.model 'magic'"),
-        ({"valve": {"model": "kano", "S": 1.0}}, r"needs 'valve\.J'"),
-        ({"valve": {"model": "choudhury", "S": 1.0, "J": -1.0}}, r"must be ≥ 0"),
-        ({"op_offset": "fifty"}, r"op_offset must be a number"),
-    ],
-)
-def test_read_nominal_errors(changes, match):
-    raises_one_line(match, read_nominal, _nominal(**changes))
-
-
-def test_read_nominal_file_errors(tmp_path):
-    raises_one_line(
-        r"file not found: '.*none\.json'", read_nominal, tmp_path / "none.json"
-    )
-    p = tmp_path / "bad.json"
-    p.write_text('{"Ts": 1.0,\n "process": }')
-    raises_one_line(r"'.*bad\.json' is not valid JSON \(.* line 2", read_nominal, p)
-    q = tmp_path / "list.json"
-    q.write_text("[1, 2]")
-    raises_one_line(r"must hold a JSON object", read_nominal, q)
-    u = tmp_path / "unstable.json"
-    u.write_text(json.dumps(_nominal(**{"process.a": [1.0, -1.05]})))
-    msg = raises_one_line(r"nominal model is unstable: pole at 1\.05", read_nominal, u)
-    assert "unstable.json" in msg
-
-
-def test_simulate_nominal_matches_lfilter():
-    signal = pytest.importorskip("scipy.signal")
-    m = read_nominal(NOMINAL)
-    op = 50 + RNG.normal(0, 2, 300)
-    y = simulate_nominal(m, op)
-    u = np.r_[np.zeros(m.delay), op - m.op_offset][: op.size]
-    expected = m.pv_offset + signal.lfilter(m.b, m.a, u)
-    np.testing.assert_allclose(y, expected, rtol=1e-10, atol=1e-10)
-    # FIR process, no delay
-    f = read_nominal(
-        {"Ts": 1, "process": {"b": [0.5, 0.25], "a": [1]}, "op_offset": 1.0}
-    )
-    np.testing.assert_allclose(simulate_nominal(f, [1.0, 3.0, 5.0]), [0.0, 1.0, 2.5])
-
-
-def test_simulate_nominal_step_gain_and_valve_fn():
-    m = read_nominal(NOMINAL)
-    y = simulate_nominal(m, np.full(400, 51.0))  # +1 step at t=0
-    gain = sum(m.b) / sum(m.a)
-    assert y[-1] == pytest.approx(m.pv_offset + gain, rel=1e-6)
-    assert np.all(y[: m.delay + 1] == m.pv_offset)  # b0 = 0 and delay 3
-    y2 = simulate_nominal(m, np.full(400, 50.0), valve_fn=lambda u: u + 1.0)
-    np.testing.assert_allclose(y2, y)
-
-
-def test_simulate_nominal_stiction_valves_not_here():
-    k = read_nominal(_nominal(valve={"model": "kano", "S": 3.0, "J": 1.0}))
-    with pytest.raises(NotImplementedError, match="kano.*provided elsewhere"):
-        simulate_nominal(k, OP)
-
-
 # ----------------------------------------------------------------------- ISDB file
 
 
-@pytest.mark.skipif(
-    not (ISDB / "CHEM23.csv").exists(), reason="ISDB data not available"
-)
-def test_isdb_chem23():
-    d = read_loop(ISDB / "CHEM23.csv")
-    assert d.name == "CHEM23"
-    assert d.ts == 10.0
-    assert len(d) == 1500
-    check_loop(d.op, d.pv, min_length=100, name=d.name)
+def test_isdb_chem23(isdb):
+    p = isdb / "CHEM23.csv"
+    d = read_loop(p)
+    assert_plain_loop(d, 1500)
+    assert loop_name(p) == "CHEM23"
+    assert float(d.ts) == 10.0
+    check_loop(d.op, d.pv, min_length=100, name=loop_name(p))

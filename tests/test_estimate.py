@@ -1,0 +1,149 @@
+"""End-to-end tests of `estimate` on small simulated stiction loops (no external data):
+the fit itself, the batched contract (vmap over padded loops == single calls),
+padding invariance, no retracing, data codes under vmap, the host API."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import jaxstiction as js
+from jaxstiction._estimate import _estimate_traced
+from jaxstiction._scenarios import nominal_model, paper_experiment
+
+
+# Reduced settings: the same pipeline with smaller grids and fewer candidates, so the
+# suite stays fast. (The full settings are exercised by the benchmarks and CLI tests.)
+SMALL = js.Settings(
+    spline=js.SplineSettings(arx_order=5, knot_counts=(3, 5), max_order=2, max_delay=2, welch_segment=64,
+                             relax_steps=150, polish_steps=20),
+    physical=js.PhysicalSettings(num_S=41, num_J=6, starts=4, refine=9, refine_S=41, final=3, line=21, rounds=2,
+                                 polish_starts=3, init_count=3, oe_steps=20),
+    score=js.ScoreSettings(init_count=20),
+    validate=0.25,
+)
+TRUE_S, TRUE_J = 10.0, 2.0
+
+
+def code(r):
+    """The integer value of a RESULTS item (batched or not)."""
+    return np.asarray(r._value)
+
+
+def _loop(seed: int, n: int) -> js.Loop:
+    plant = nominal_model(chain=(js.Kano(TRUE_S, TRUE_J),))
+    rec = js.simulate_loop(plant, paper_experiment(), jr.PRNGKey(seed), n)
+    return rec.loop
+
+
+@pytest.fixture(scope="module")
+def loops():
+    return [_loop(1, 700), _loop(2, 760), _loop(3, 800)]
+
+
+@pytest.fixture(scope="module")
+def singles(loops):
+    return [js.estimate(lp, SMALL) for lp in loops]
+
+
+def test_synthetic_fit_finds_the_valve(singles):
+    """A stiction loop built by the simulator: the physical model is chosen, S and J
+    are near the truth, and the held-out simulation fitness is high."""
+    for f in singles:
+        assert code(f.result) == code(js.RESULTS.successful)
+        assert int(f.kind) == 1
+        assert abs(float(f.S) - TRUE_S) < 1.0
+        assert abs(float(f.J) - TRUE_J) < 1.0
+        assert float(f.fitness) > 60.0
+        assert float(f.band_percent) == pytest.approx(float(f.S))
+        # the validation split: a quarter of the samples, rounded
+        n = f.n_estimation + f.n_validation
+        assert int(f.n_validation) == round(0.25 * int(n))
+
+
+def _close(a, b, rtol=1e-6, atol=1e-8):
+    for x, y in zip(jax.tree.leaves(eqx.filter(a, eqx.is_array)), jax.tree.leaves(eqx.filter(b, eqx.is_array))):
+        x, y = np.asarray(x), np.asarray(y)
+        if x.dtype.kind in "iub":
+            np.testing.assert_array_equal(x, y)
+        else:
+            np.testing.assert_allclose(x, y, rtol=rtol, atol=atol, equal_nan=True)
+
+
+def test_vmap_over_stacked_loops_equals_single_calls(loops, singles):
+    """The batched contract: filter_vmap(estimate)(stack(loops)) member i == the single
+    call on loop i, fitness and band included, although the loops differ in length."""
+    batch = js.stack(loops)
+    fits = eqx.filter_vmap(lambda lp: js.estimate(lp, SMALL))(batch)
+    for i, f in enumerate(singles):
+        member = jax.tree.map(lambda t: t[i], fits)
+        for name in ("fitness", "fitness_estimation", "band_percent", "S", "J", "kind"):
+            np.testing.assert_allclose(np.asarray(getattr(member, name)), np.asarray(getattr(f, name)),
+                                       rtol=1e-6, atol=1e-8, err_msg=name)
+        assert code(member.result) == code(f.result)
+        _close(member.model, f.model)
+
+
+def test_padding_does_not_change_the_answer(loops, singles):
+    """A loop padded with masked samples gives the unpadded answer (to rounding)."""
+    padded = js.stack([loops[0]], length=loops[2].op.shape[0])
+    f = js.estimate(jax.tree.map(lambda t: t[0], padded), SMALL)
+    ref = singles[0]
+    for name in ("fitness", "fitness_estimation", "band_percent", "S", "J", "kind", "n_validation"):
+        np.testing.assert_allclose(np.asarray(getattr(f, name)), np.asarray(getattr(ref, name)), rtol=1e-6, atol=1e-8,
+                                   err_msg=name)
+    assert code(f.result) == code(ref.result)
+
+
+def test_no_retracing_for_new_data_of_one_shape(loops, singles):
+    """New data of an already-seen shape reuses the compiled estimate."""
+    before = eqx.debug.get_num_traces(_estimate_traced)
+    other = _loop(9, loops[0].op.shape[0])
+    js.estimate(other, SMALL)
+    js.estimate(jax.tree.map(lambda t: t + 1.0, other), SMALL)
+    assert eqx.debug.get_num_traces(_estimate_traced) == before
+
+
+@pytest.mark.parametrize(
+    "spoil, name",
+    [
+        (lambda lp: eqx.tree_at(lambda t: t.pv, lp, lp.pv.at[100].set(jnp.nan)), "nonfinite_data"),
+        (lambda lp: eqx.tree_at(lambda t: t.op, lp, jnp.full_like(lp.op, 42.0)), "constant_op"),
+        (lambda lp: eqx.tree_at(lambda t: t.pv, lp, jnp.full_like(lp.pv, 3.0)), "constant_pv"),
+        (lambda lp: eqx.tree_at(lambda t: t.mask, lp, lp.mask.at[120:].set(0.0)), "too_short"),
+    ],
+)
+def test_bad_member_gets_its_code_and_spoils_nothing(loops, singles, spoil, name):
+    """Under vmap, a bad loop gets its own data code and the good one is unchanged."""
+    good, bad = loops[2], spoil(loops[2])
+    fits = eqx.filter_vmap(lambda lp: js.estimate(lp, SMALL))(js.stack([good, bad]))
+    got = code(fits.result)
+    assert got[1] == code(getattr(js.RESULTS, name))
+    assert got[0] == code(js.RESULTS.successful)
+    np.testing.assert_allclose(float(fits.fitness[0]), float(singles[2].fitness), rtol=1e-6)
+
+
+def test_predict_delegates_to_the_model(loops, singles):
+    f, lp = singles[0], loops[0]
+    np.testing.assert_allclose(f.predict(lp.op), f.model.simulate(lp.op))
+    k1 = f.predict(lp.op, lp.pv, k=1)
+    assert k1.shape == lp.op.shape and bool(jnp.all(jnp.isfinite(k1)))
+    # one-step prediction beats simulation (the noise model is used)
+    sim = f.predict(lp.op, lp.pv)
+    assert float(jnp.mean((lp.pv - k1) ** 2)) < float(jnp.mean((lp.pv - sim) ** 2))
+
+
+def test_host_fit_reports_and_rejects_bad_input(loops):
+    lp = loops[0]
+    r = js.fit(np.asarray(lp.op), np.asarray(lp.pv), validate=0.25, settings=SMALL, name="syn")
+    d = r.to_json()
+    assert d["status"] == "ok" and d["model"]["kind"] == "physical"
+    assert d["stiction"]["S"] == pytest.approx(float(r.S), abs=1e-3)
+    op = np.asarray(lp.op).copy()
+    op[5] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        js.fit(op, np.asarray(lp.pv), settings=SMALL)
+    with pytest.raises(ValueError, match="too short|at least"):
+        js.fit(np.asarray(lp.op)[:100], np.asarray(lp.pv)[:100], settings=SMALL)
