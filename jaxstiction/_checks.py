@@ -1,4 +1,4 @@
-"""Input checks for loop data (DESIGN §6, "Errors").
+"""Input checks for loop data (the "Errors" part of the command-line contract).
 
 Every problem with user data is reported as a [`jaxstiction.LoopDataError`][], a
 `ValueError` whose message is a single line naming the problem, so that the command

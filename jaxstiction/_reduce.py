@@ -2,8 +2,8 @@ r"""Reduction of the high-order model to a low-order Box–Jenkins model: (17)�
 
 The frequency-weighted criterion (19) between $\hat G^n$ and
 $G^l = q^{-n_k} B^l / A^l$ is weighted by the inverse of the asymptotic variance
-(18). (The paper prints the weight of (19) upside down; DESIGN §2 and Zhu (1998)
-weight by the inverse variance, which is what is done here.) It is minimised with
+(18). (The paper prints the weight of (19) upside down; Zhu (1998) weights
+by the inverse variance, which is what is done here.) It is minimised with
 `optx.GaussNewton`, started from a Sanathanan–Koerner linear fit. All candidate
 orders $l$ and delays $n_k$ share one padded parameter shape and are solved in one
 `vmap`; ASYC (21) picks among them.

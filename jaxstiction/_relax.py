@@ -10,7 +10,7 @@ regressors, $n + n p$ columns): step (15) uses $Z\,T_a(b)$, step (16) uses
 $Z\,T_b(\beta)$ for small linear maps $T$. So $Z$ is QR-factorised **once** per
 loop, $[Z\ y] = Q [R\ r]$, and each sweep solves
 $\min_\theta \lVert r - R\,T\,\theta\rVert$ — a problem whose size does not grow
-with $N$. This is the DESIGN hint about Gram tensors, done with a QR factor instead
+with $N$. This is the Gram-tensor idea (compress once per loop), done with a QR factor instead
 of normal matrices, so its conditioning is that of the original problem.
 """
 

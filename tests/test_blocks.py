@@ -37,7 +37,7 @@ from jaxstiction._blocks import (
 
 
 def kano_ref(u, S, J):
-    """DESIGN §3 pseudo-code, line by line; starts stuck at u[0], direction +1."""
+    """Kano's published pseudo-code, line by line; starts stuck at u[0], direction +1."""
     u = [float(v) for v in u]
     y, us, stp, d, u_prev, du_prev = u[0], u[0], 1, 1.0, u[0], 0.0
     out, moving = [], []

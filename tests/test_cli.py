@@ -1,4 +1,4 @@
-"""The command line: one-line errors with exit 2, and the JSON contract (DESIGN §6)."""
+"""The command line: one-line errors with exit 2, and the JSON contract (the documented contract)."""
 
 import json
 import subprocess
