@@ -40,6 +40,17 @@ def _levels(u_open, count: int):
     return jax.lax.cummax(u)[idx], jax.lax.cummin(u)[idx]
 
 
+def _stops(u_open, count: int, S, J):
+    """Where a stopped two-parameter valve may have stopped (`us`) and which way it
+    last travelled (`d`), so that its first slip is every distinct one the opening
+    samples allow: after rising (d = +1) it slips up past the running max M with
+    us = M - J, or down past the running min m with us = m + S; after falling,
+    us = m + J (down) or M - S (up)."""
+    up, dn = _levels(u_open, count)
+    one = jnp.ones_like(up)
+    return jnp.concatenate([up - J, dn + S, dn + J, up - S]), jnp.concatenate([one, one, -one, -one])
+
+
 def _f(x) -> Array:
     """A parameter as an inexact JAX array (integers would truncate S, J)."""
     x = jnp.asarray(x)
@@ -118,20 +129,17 @@ class Kano(AbstractBlock):
         return (y, us, stp, d, u, du), y
 
     def initial_states(self, u_open, count: int):
-        # A stopped valve slips when the input first passes a level: after rising
-        # (d = +1) it slips up past M with us = M - J, or down past m with us = m + S;
-        # after falling, us = m + J (down) or M - S (up). M, m are the running max
-        # and min of the opening samples, so the candidates realise every distinct
-        # first slip there, to the sample; plus the two moving states. The held position itself is
-        # a free level (see LoopModel.initial_state).
-        up, dn = _levels(u_open, count)
+        # Every distinct first slip of the opening samples (see `_stops`), plus the
+        # two moving states. The held position itself is a free level (see
+        # LoopModel.initial_state).
+        stops, dirs = _stops(u_open, count, self.S, self.J)
         u0 = jnp.asarray(u_open)[0]
         S, J = self.S, self.J
-        one = jnp.ones_like(up)
-        us = jnp.concatenate([up - J, dn + S, dn + J, up - S, u0[None], u0[None]])
-        d = jnp.concatenate([one, one, -one, -one, jnp.ones((1,), up.dtype), -jnp.ones((1,), up.dtype)])
+        one = jnp.ones((1,), stops.dtype)
+        us = jnp.concatenate([stops, u0[None], u0[None]])
+        d = jnp.concatenate([dirs, one, -one])
         k = us.shape[0]
-        stp = jnp.concatenate([jnp.ones((k - 2,), up.dtype), jnp.zeros((2,), up.dtype)])
+        stp = jnp.concatenate([jnp.ones((k - 2,), stops.dtype), jnp.zeros((2,), stops.dtype)])
         # moving: the previous input a hair behind in the travel direction
         eps = 1e-9 * (1 + jnp.abs(u0))
         u_prev = jnp.where(stp == 0, u0 - d * eps, u0)
@@ -177,15 +185,11 @@ class Choudhury(AbstractBlock):
         return (y, x_ss, stuck, v_new, direction, x), y
 
     def initial_states(self, u_open, count: int):
-        # as Kano: stuck at levels that make the opening samples slip, either way
-        up, dn = _levels(u_open, count)
+        # as Kano: stuck where every distinct first slip of the opening samples happens
+        xss, direction = _stops(u_open, count, self.S, self.J)
         u0 = jnp.asarray(u_open)[0]
-        S, J = self.S, self.J
-        one = jnp.ones_like(up)
-        xss = jnp.concatenate([up - J, dn + S, dn + J, up - S])
-        direction = jnp.concatenate([one, one, -one, -one])
         k = xss.shape[0]
-        return (jnp.full((k,), u0), xss, jnp.ones((k,), up.dtype), jnp.zeros((k,), up.dtype), direction,
+        return (jnp.full((k,), u0), xss, jnp.ones((k,), xss.dtype), jnp.zeros((k,), xss.dtype), direction,
                 jnp.full((k,), u0))
 
 

@@ -14,6 +14,13 @@ from jaxstiction._read import find_loop_files, loop_name, read_loop
 from jaxstiction._read_mat import list_mat_loops
 
 
+try:
+    from tests.helpers import raises_one_line
+except ImportError:  # pytest with tests/ on sys.path
+    from helpers import raises_one_line
+
+
+
 RNG = np.random.default_rng(0)
 N = 50
 OP = 50 + 5 * np.sin(np.arange(N) / 3.0) + RNG.normal(0, 0.1, N)
@@ -27,16 +34,6 @@ def write_csv(path, header, columns, fmt="{:.10g}", sep=","):
         lines.append(sep.join(fmt.format(v) for v in row))
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-def raises_one_line(match, func, *args, **kwargs):
-    """Call `func`; assert a one-line LoopDataError (a ValueError) matching `match`."""
-    with pytest.raises(LoopDataError, match=match) as info:
-        func(*args, **kwargs)
-    msg = str(info.value)
-    assert isinstance(info.value, ValueError)
-    assert "\n" not in msg and "\r" not in msg
-    return msg
 
 
 def assert_plain_loop(d, n):

@@ -7,9 +7,15 @@ import pytest
 
 import jaxstiction as js
 from jaxstiction._blocks import ActuatorLag, Choudhury, Deadband, DeadTime, He, Kano, Sinusoid
-from jaxstiction._checks import LoopDataError
 from jaxstiction._models import LinearProcess, LoopModel, SplineValve
 from jaxstiction._nominal import nominal_to_dict, nominal_ts, read_nominal
+
+
+try:
+    from tests.helpers import raises_one_line
+except ImportError:  # pytest with tests/ on sys.path
+    from helpers import raises_one_line
+
 
 
 NOMINAL = {
@@ -34,16 +40,6 @@ def _nominal(**changes):
         else:
             target[last] = value
     return m
-
-
-def raises_one_line(match, func, *args, **kwargs):
-    """Call `func`; assert a one-line LoopDataError (a ValueError) matching `match`."""
-    with pytest.raises(LoopDataError, match=match) as info:
-        func(*args, **kwargs)
-    msg = str(info.value)
-    assert isinstance(info.value, ValueError)
-    assert "\n" not in msg and "\r" not in msg
-    return msg
 
 
 def reference_pv(b, a, delay, op_offset, pv_offset, op):

@@ -1,0 +1,15 @@
+"""Helpers shared by several test files."""
+
+import pytest
+
+from jaxstiction._checks import LoopDataError
+
+
+def raises_one_line(match, func, *args, **kwargs):
+    """Call `func`; assert a one-line LoopDataError (a ValueError) matching `match`."""
+    with pytest.raises(LoopDataError, match=match) as info:
+        func(*args, **kwargs)
+    msg = str(info.value)
+    assert isinstance(info.value, ValueError)
+    assert "\n" not in msg and "\r" not in msg
+    return msg
