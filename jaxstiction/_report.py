@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -124,6 +125,17 @@ class FitReport:
         }
 
 
+@eqx.filter_jit
+def _simulations(model, paper, op, pv, weights, settings):
+    # one compiled call (cached across processes) rather than op-by-op dispatch
+    return simulate_scored(model, op, pv, weights, settings)[0], simulate_scored(paper, op, pv, weights, settings)[0]
+
+
+@eqx.filter_jit
+def _kano_path(S, J, op):
+    return Kano(S, J)(op)
+
+
 def _valve_picture(fit: LoopFit, settings: Settings):
     """Valve curves in % of OP and the process in PV units per % of valve travel."""
     lo, hi = (float(v) for v in np.asarray(fit.op_range))
@@ -134,7 +146,7 @@ def _valve_picture(fit: LoopFit, settings: Settings):
         # Kano's own loop: a triangular OP sweep hi -> lo -> hi -> lo (the first leg
         # settles the valve state); ascent and descent legs read off.
         sweep = np.concatenate([ug[::-1], ug, ug[::-1]])
-        xk = np.asarray(Kano(fit.S, fit.J)(jnp.asarray(sweep)))
+        xk = np.asarray(_kano_path(fit.S, fit.J, jnp.asarray(sweep)))
         n_u = ug.shape[0]
         up, down = xk[n_u : 2 * n_u], xk[2 * n_u :][::-1]
         # x_hat = 2 (valve - lo) / (hi - lo) - 1
@@ -158,8 +170,7 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
     pv = np.asarray(pv, float)
     opj, pvj = jnp.asarray(op), jnp.asarray(pv)
     whole = jnp.ones_like(opj)
-    pv_sim = np.asarray(simulate_scored(fit.model, opj, pvj, whole, settings.score)[0])
-    pv_sim_paper = np.asarray(simulate_scored(fit.paper, opj, pvj, whole, settings.score)[0])
+    pv_sim, pv_sim_paper = (np.asarray(v) for v in _simulations(fit.model, fit.paper, opj, pvj, whole, settings.score))
     ug, up, down, pb, pa = _valve_picture(fit, settings)
     step = np.asarray(step_response(jnp.asarray(pb), jnp.asarray(pa), 60))
     kind = KINDS[int(fit.kind)]
