@@ -237,7 +237,10 @@ class LoopModel(eqx.Module):
         # vmapped (the scans then run once over a batch of candidates), in chunks
         # that bound memory on long records
         chunk = int(max(1, min(256, 2_000_000 // max(op.shape[0], 1))))
-        errs, ths = chunked_vmap(lambda c: one(c), (cands,), chunk)
+        if jax.tree.leaves(cands):
+            errs, ths = chunked_vmap(lambda c: one(c), (cands,), chunk)
+        else:  # memoryless chain (e.g. travel limits): one candidate
+            errs, ths = jax.tree.map(lambda t: t[None], one(cands))
         i = jnp.argmin(errs)
         th = ths[i]
         chain = jax.tree.map(lambda t: t[i], cands)
