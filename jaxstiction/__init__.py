@@ -24,6 +24,13 @@ from ._blocks import (
 )
 from ._checks import check_loop as check_loop, LoopDataError as LoopDataError
 from ._criteria import score as score, ScoreSettings as ScoreSettings, simulate_scored as simulate_scored
+from ._diagnose import (
+    diagnose as diagnose,
+    DiagnoseSettings as DiagnoseSettings,
+    Diagnosis as Diagnosis,
+    Finding as Finding,
+    VERDICTS as VERDICTS,
+)
 from ._estimate import (
     estimate as estimate,
     LoopFit as LoopFit,

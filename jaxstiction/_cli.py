@@ -1,4 +1,4 @@
-"""Command line: `jaxstiction demo | fit | screen`.
+"""Command line: `jaxstiction demo | fit | screen | diagnose`.
 
 Every command takes `--json` (exactly one JSON object on stdout, nothing else there)
 and `--out DIR` (pictures and a report). Progress and messages go to stderr. Bad input
@@ -160,6 +160,50 @@ def cmd_screen(args):
     return 0
 
 
+def _diagnosis_text(name, d) -> str:
+    lines = [f"loop {name}: verdict {d.verdict}" + (f" (runner-up: {d.runner_up})" if d.runner_up else ""),
+             f"  nominal model on held-out data: fitness {d.heldout_nominal['fitness']:.2f} %"]
+    for f in d.findings:
+        if not f.accepted:
+            continue
+        params = ", ".join(f"{k} = {v}" for k, v in f.parameters.items() if k != "interval")
+        lines.append(f"  {f.effect}: {params}; held-out fitness {f.heldout_before['fitness']:.2f} -> "
+                     f"{f.heldout_after['fitness']:.2f} %"
+                     + (f" ({f.evidence['note']})" if "note" in f.evidence else ""))
+    L = d.located
+    periods = [x["period_samples"] for x in L["spectrum"]["lines"]]
+    lines.append(f"  located: residual white {L['whiteness']['white']}, OP-residual cross-correlation passes "
+                 f"{L['cross_correlation']['passes']}, narrow lines (period, samples) {periods}, "
+                 f"segments {[x['segment'] for x in L['segments'] if x['significant']]}, windows {L['time_windows']}")
+    for note in d.not_identifiable:
+        lines.append(f"  not identifiable: {note}")
+    return "\n".join(lines)
+
+
+def cmd_diagnose(args):
+    from ._diagnose import diagnose, DiagnoseSettings
+    from ._nominal import nominal_ts, read_nominal
+    from ._read import loop_name, read_loop
+
+    nominal = read_nominal(args.model) if args.model else None
+    ts = args.ts if args.ts is not None else (nominal_ts(args.model) if args.model else None)
+    loop = read_loop(args.file, ts=ts, name=args.name)
+    name = args.name if args.name is not None else loop_name(args.file)
+    _log(f"diagnose: {name}: {int(loop.op.shape[0])} samples"
+         + (f", nominal model {args.model}" if args.model else ", no nominal model: fitting a linear-valve one"))
+    t0 = time.time()
+    d = diagnose(loop, nominal, DiagnoseSettings(holdout=args.holdout, bootstrap=args.bootstrap),
+                 progress=lambda m: _log(f"diagnose: {m}"))
+    _log(f"diagnose: done in {time.time() - t0:.1f} s")
+    if args.out:
+        from ._plots import write_diagnosis_figures
+
+        write_diagnosis_figures(d, Path(args.out), name=name, ts=float(loop.ts))
+    payload = {"name": name, **d.to_json()}
+    _emit(args, payload, _diagnosis_text(name, d))
+    return 0
+
+
 def build_parser():
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -186,6 +230,16 @@ def build_parser():
     s.add_argument("--band-threshold", type=float, default=1.0,
                    help="apparent band (%% of OP) above which stiction is reported")
     s.set_defaults(func=cmd_screen)
+    g = sub.add_parser("diagnose", parents=[common],
+                       help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
+    g.add_argument("file")
+    g.add_argument("--model", metavar="NOMINAL.json", default=None,
+                   help="nominal model (JSON); without it a linear-valve model is fitted first")
+    g.add_argument("--holdout", type=float, default=1 / 3, metavar="FRACTION", help="held-out fraction at the end")
+    g.add_argument("--bootstrap", type=int, default=39, help="parametric bootstrap replicates")
+    g.add_argument("--ts", type=float, default=None)
+    g.add_argument("--name", default=None)
+    g.set_defaults(func=cmd_diagnose)
     return p
 
 

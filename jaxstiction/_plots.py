@@ -266,3 +266,67 @@ def _op_pv(result, validation_start) -> Figure:
     ax_xy.set_title("PV against OP")
     ax_xy.grid(alpha=0.3)
     return fig
+
+
+def write_diagnosis_figures(diagnosis, out_dir, *, name: str = "loop", ts: float = 1.0) -> list[Path]:
+    """Pictures of a [`jaxstiction.Diagnosis`][] into `out_dir`: `diagnosis.png` with
+    the nominal simulation residual against time (located windows shaded, held-out
+    part marked), its spectrum (narrow lines marked), PV against OP, and the held-out
+    fit before (nominal) and after (diagnosed model)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    s = diagnosis.series
+    op, pv, z = (np.asarray(s[k], float) for k in ("op", "pv", "residual"))
+    n, n_est = len(pv), diagnosis.n_estimation
+    t = np.arange(n) * ts
+    fig = _figure((SIZE[0] * 1.5, SIZE[1] * 1.6))
+    ax = fig.subplots(2, 2)
+    a = ax[0, 0]
+    a.plot(t, z, color=C_MEAS, lw=0.6)
+    for w0, w1 in diagnosis.located.get("time_windows") or []:
+        a.axvspan(w0 * ts, w1 * ts, color="tab:orange", alpha=0.25, lw=0)
+    a.axvspan(n_est * ts, n * ts, color=C_VAL, alpha=0.15, lw=0, label="held out")
+    a.set_title("residual of the nominal simulation (located windows shaded)")
+    a.set_xlabel("time (s)")
+    a.set_ylabel("PV - simulation")
+    a.legend(loc="upper right", fontsize=8)
+    a.grid(alpha=0.3)
+    a = ax[0, 1]
+    spec = s["spectrum"]
+    f, P = np.asarray(spec["frequency"]), np.asarray(spec["power"])
+    a.semilogy(f[1:] / ts, P[1:], color=C_MEAS, lw=0.8)
+    for line in spec["lines"]:
+        a.axvline(line["frequency"] / ts, color=C_MODEL, lw=0.8, ls="--")
+        a.annotate(f"period {line['period_samples'] * ts:.3g} s", (line["frequency"] / ts, P.max()), fontsize=8,
+                   color=C_MODEL, rotation=90, va="top", ha="right")
+    a.set_title("residual spectrum (estimation part)")
+    a.set_xlabel("frequency (Hz)" if ts != 1.0 else "frequency (cycles per sample)")
+    a.grid(alpha=0.3, which="both")
+    a = ax[1, 0]
+    a.plot(op, pv, color="0.75", lw=0.4)
+    a.scatter(op, pv, c=t, s=3, cmap="viridis")
+    a.set_xlabel("OP (% of span)")
+    a.set_ylabel("PV")
+    a.set_title("PV against OP")
+    a.grid(alpha=0.3)
+    a = ax[1, 1]
+    h = slice(n_est, n)
+    a.plot(t[h], pv[h], color=C_MEAS, lw=0.7, label="measured")
+    a.plot(t[h], np.asarray(s["sim_nominal"])[h], color=C_PAPER, lw=0.9,
+           label=f"nominal ({diagnosis.heldout_nominal['fitness']:.1f} %)")
+    acc = [f_ for f_ in diagnosis.findings if f_.accepted and f_.model is not None]
+    after = acc[0].heldout_after["fitness"] if acc else diagnosis.heldout_nominal["fitness"]
+    a.plot(t[h], np.asarray(s["sim_after"])[h], color=C_MODEL, lw=0.9,
+           label=f"with {diagnosis.verdict} ({after:.1f} %)")
+    lo, hi = np.percentile(pv[h], [0.5, 99.5])
+    pad = 0.3 * (hi - lo + 1e-12)
+    a.set_ylim(lo - pad, hi + pad)
+    a.set_title("held-out fit, before and after")
+    a.set_xlabel("time (s)")
+    a.legend(loc="upper right", fontsize=8)
+    a.grid(alpha=0.3)
+    fig.suptitle(f"{name}: verdict {diagnosis.verdict}")
+    fig.tight_layout()
+    path = out / "diagnosis.png"
+    fig.savefig(path, dpi=DPI)
+    return [path]

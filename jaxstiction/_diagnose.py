@@ -1,0 +1,645 @@
+r"""Mismatch diagnosis: locate where a nominal simulation and a recording differ,
+name the missing physics, model it, and prove the gain on held-out data.
+
+A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the library
+(or two), refitted. The steps:
+
+1. **Locate** ([`jaxstiction._locate`]): tests on the simulation residual and on the
+   one-step error of a refitted noise model.
+2. **Name.** Every candidate family (stiction, deadband, dead time, valve
+   characteristic, travel limit, actuator lag, external oscillation, drift) is added
+   to the nominal model on a grid of its parameters, the linear part refitted by
+   least squares at each point (all points in one `vmap`). A family's statistic is
+   the likelihood ratio $T = N \log(V_0 / V)$ of its best point against the refitted
+   linear valve. The parameters are searched, so textbook $\chi^2$ thresholds do not
+   hold: significance comes from a parametric bootstrap (the refitted nominal model
+   plus noise from its fitted noise model, with the recorded OP), with the maximum
+   over families (Westfall–Young) so that the whole search, not one family, holds
+   the false-discovery rate.
+3. **Model and prove.** The best point of each significant family is refitted with a
+   Box–Jenkins linear part on the estimation samples and scored on the held-out
+   samples (simulation fitness from an estimated initial state, one-step and k-step
+   prediction errors). A block is accepted when it is significant, improves held-out
+   simulation fitness by more than the run-to-run spread (bootstrap), and its
+   residual passes the input cross-correlation test (or a second block then does).
+   Effects that no deterministic block can predict (quantisation; drift) are named
+   from their own evidence and reported with no simulation gain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optimistix as optx
+
+from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, Sinusoid, TravelLimits
+from ._criteria import simulate_scored
+from ._filters import lagged, lfilter
+from ._linalg import is_stable, lstsq
+from ._locate import ar_whiten, cross_correlation, locate, spectrum_lines, whiteness
+from ._models import LinearProcess, LoopModel, NoiseModel
+from ._physical import _delay, fit_oe
+from ._reduce import fit_noise_model
+
+
+VERDICTS = ("none", "stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag",
+            "external_oscillation", "drift", "quantization")
+INPUT_FAMILIES = ("stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag")
+K_STEP = 10
+
+
+class Finding(eqx.Module):
+    """One named effect: its block's parameters (with an interval from the grid's
+    likelihood profile), the evidence, and held-out figures before (refitted linear
+    valve) and after (with the block)."""
+
+    effect: str = eqx.field(static=True)
+    parameters: dict
+    evidence: dict
+    heldout_before: dict
+    heldout_after: dict
+    accepted: bool = eqx.field(static=True)
+    model: LoopModel | None = None
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect, "parameters": self.parameters, "evidence": self.evidence,
+                "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
+                "accepted": self.accepted}
+
+
+class Diagnosis(eqx.Module):
+    """Result of [`jaxstiction.diagnose`][]: the verdict (one of `VERDICTS`), the
+    findings ranked (accepted first, by held-out gain), where the mismatch is, the
+    nominal and diagnosed models, what cannot be identified from OP and PV alone,
+    and the series behind the pictures."""
+
+    verdict: str = eqx.field(static=True)
+    findings: tuple
+    located: dict
+    nominal: LoopModel
+    model: LoopModel
+    heldout_nominal: dict
+    not_identifiable: tuple
+    runner_up: str | None = eqx.field(static=True)
+    n_estimation: int = eqx.field(static=True)
+    series: dict
+
+    def to_json(self) -> dict:
+        return {
+            "verdict": self.verdict,
+            "findings": [f.to_json() for f in self.findings],
+            "runner_up": self.runner_up,
+            "located": self.located,
+            "heldout_nominal": self.heldout_nominal,
+            "not_identifiable": list(self.not_identifiable),
+            "samples": {"estimation": self.n_estimation,
+                        "heldout": int(len(self.series["pv"]) - self.n_estimation)},
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnoseSettings:
+    """`holdout`: fraction of the record held out at its end; `bootstrap`: parametric
+    bootstrap replicates (the smallest p-value is 1/(bootstrap+1)); `alpha`:
+    family-wise significance level; `order`: linear order when no nominal model is
+    given; `max_delay`: delays tried then; `grid`: points per axis of the stiction and
+    deadband grids; `periods`: periods tried for an external oscillation."""
+
+    holdout: float = 1 / 3
+    bootstrap: int = 39
+    alpha: float = 0.05
+    order: int = 2
+    max_delay: int = 4
+    grid: int = 36
+    periods: int = 48
+    seed: int = 0
+
+
+def _diff(a, b) -> float:
+    """`a - b` for held-out figures that may be missing (None: not finite)."""
+    if a is None:
+        return -math.inf
+    if b is None:
+        return math.inf
+    return a - b
+
+
+def _normal_sf(zv: float) -> float:
+    return 0.5 * math.erfc(zv / math.sqrt(2.0))
+
+
+# ---------------------------------------------------------------- candidates
+
+
+def _stack(blocks):
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *blocks)
+
+
+def _input_candidates(op: np.ndarray, grid: int):
+    """Per input family: `(blocks stacked or list, parameter table)`. Grids are
+    relative to the OP's range on the estimation samples."""
+    lo, hi = float(np.min(op)), float(np.max(op))
+    span = max(hi - lo, 1e-9)
+    widths = span * np.geomspace(0.005, 1.0, grid)
+    fr = (0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
+    kano = [(s, s * f) for s in widths for f in fr]
+    qs_hi = np.quantile(op, [0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.98])
+    qs_lo = np.quantile(op, [0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5])
+    lags = (0.2, 0.4, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95)
+    Rs = (3.0, 5.0, 10.0, 20.0, 30.0, 50.0, 80.0)
+    return {
+        "stiction": ([Kano(s, j) for s, j in kano], [{"S": s, "J": j} for s, j in kano]),
+        "deadband": ([Deadband(w) for w in widths], [{"width": w} for w in widths]),
+        "dead_time": ([DeadTime(k) for k in range(1, 6)], [{"samples": k} for k in range(1, 6)]),
+        "valve_characteristic": ([EqualPercentage(R) for R in Rs], [{"R": R} for R in Rs]),
+        "saturation": ([TravelLimits(hi=h) for h in qs_hi] + [TravelLimits(lo=v) for v in qs_lo],
+                       [{"hi": float(h)} for h in qs_hi] + [{"lo": float(v)} for v in qs_lo]),
+        "actuator_lag": ([ActuatorLag(a) for a in lags], [{"a": a} for a in lags]),
+    }
+
+
+def _paths(op, blocks) -> jnp.ndarray:
+    """Valve paths of a list of blocks over `op` (one vmap per block type/shape)."""
+    out = []
+    for blk in blocks:
+        out.append(blk(op))
+    return jnp.stack(out)
+
+
+@jax.jit
+def _paths_kano(op, S, J):
+    return jax.vmap(lambda s, j: Kano(s, j)(op))(S, J)
+
+
+def _family_paths(op_j, fams):
+    """(G, N) valve paths for every input candidate, and each family's slice."""
+    rows, slices, start = [], {}, 0
+    for name, (blocks, _) in fams.items():
+        if name == "stiction":
+            S = jnp.asarray([b.S for b in blocks])
+            J = jnp.asarray([b.J for b in blocks])
+            P = _paths_kano(op_j, S, J)
+        elif name in ("deadband", "actuator_lag", "valve_characteristic", "saturation"):
+            P = jax.jit(jax.vmap(lambda b: b(op_j)))(_stack(blocks))
+        else:
+            P = _paths(op_j, blocks)
+        rows.append(P)
+        slices[name] = slice(start, start + P.shape[0])
+        start += P.shape[0]
+    return jnp.concatenate(rows), slices
+
+
+def _whitened_loss(x, yf, w, filt, ones_f, delay, nb: int):
+    r"""Prediction-error loss with the baseline's poles $A_0$ and noise model $D/C$
+    held: $\min_{B, c} \sum w\,[\tfrac{D}{C}(y - \tfrac{B}{A_0} q^{-d} x - c)]^2$, linear
+    in $B$ and $c$ (least squares by QR). Returns the sum of squares and the residual."""
+    xd = _delay(filt(x), delay)
+    X = jnp.concatenate([lagged(xd, nb), ones_f[:, None]], axis=1)
+    th = lstsq(X * w[:, None], yf * w, 1e-10)
+    r = w * (yf - X @ th)
+    return jnp.sum(r**2), r, th
+
+
+@eqx.filter_jit
+def _refit_b(x, y, w, a0, c, d, delay, nb: int):
+    """$B$ and the offset of $y = \tfrac{B}{A_0} q^{-d} x + c$ for one valve path,
+    by the same whitened least squares as the grid."""
+    yf = lfilter(d, c, y)
+    ones_f = lfilter(d, c, jnp.ones_like(y))
+    cd = jnp.convolve(c, a0)
+    return _whitened_loss(x, yf, w, lambda v: lfilter(d, cd, v), ones_f, delay, nb)[2]
+
+
+@eqx.filter_jit
+def _statistics(y, paths, base_x, w, a0, c, d, delay, nb: int, fmin, fmax):
+    """Every candidate's loss for one output record `y` (scaled): the input paths
+    `(G,)`, the best external oscillation (by the periodogram of the baseline's
+    whitened residual on a 8x zero-padded grid) and the linear-valve baseline. All
+    losses are means over the weighted samples; also the best frequency."""
+    n = jnp.sum(w)
+    cd = jnp.convolve(c, a0)
+    yf = lfilter(d, c, y)
+    ones_f = lfilter(d, c, jnp.ones_like(y))
+
+    def filt(x):
+        return lfilter(d, cd, x)
+
+    v_in = jax.lax.map(lambda x: _whitened_loss(x, yf, w, filt, ones_f, delay, nb)[0], paths, batch_size=16)
+    v0, r0, _ = _whitened_loss(base_x, yf, w, filt, ones_f, delay, nb)
+    m = 8 * y.shape[0]
+    R = jnp.fft.rfft(r0, n=m)
+    f = jnp.arange(R.shape[0]) / m
+    red = jnp.where((f >= fmin) & (f <= fmax), 2 * jnp.abs(R) ** 2 / n, 0.0)
+    k = jnp.argmax(red)
+    return v_in / n, (v0 - red[k]) / n, v0 / n, f[k]
+
+
+@jax.jit
+def _drift_stat(z, w):
+    """KPSS statistic of the simulation residual on the weighted samples: partial sums
+    of the demeaned residual against its long-run variance (Bartlett window, 40
+    lags). Large when the residual wanders (a random-walk drift); its null
+    distribution comes from the bootstrap, so the residual's own colour is allowed."""
+    n = jnp.sum(w)
+    zc = w * (z - jnp.sum(w * z) / n)
+    S = jnp.cumsum(zc)
+    lags = 40
+    g0 = jnp.sum(zc * zc) / n
+    gk = jnp.stack([jnp.sum(zc[k:] * zc[:-k]) / n for k in range(1, lags + 1)])
+    lr = g0 + 2 * jnp.sum((1 - jnp.arange(1, lags + 1) / (lags + 1)) * gk)
+    return jnp.sum(w * S**2) / (n**2 * jnp.maximum(lr, 1e-300))
+
+
+# ------------------------------------------------------------------ fitting
+
+
+def _fit_linear(x, y, w, order: int, delays, max_delay: int):
+    """Box–Jenkins fit (first-order noise) of `y` on the valve path `x` for each delay;
+    the best. Scaled inputs and outputs in, scaled model out."""
+    fits = [fit_oe(x, y, w, order, jnp.asarray(d), max_delay, 60) for d in delays]
+    losses = []
+    for m, (c, d), _ in fits:
+        e = lfilter(d, c, y - m.simulate(x, max_delay))
+        losses.append(float(jnp.sum(w * e**2) / jnp.sum(w)))
+    i = int(np.nanargmin(np.where(np.isfinite(losses), losses, np.nan))) if np.any(np.isfinite(losses)) else 0
+    return fits[i], delays[i], losses[i]
+
+
+def _loop_model(chain, oe, noise, max_delay, mu, sy, op_mean, sx, output=()):
+    b, a = oe.linear.polynomials(max_delay)
+    c, d = noise
+    return LoopModel(
+        chain=tuple(chain),
+        process=LinearProcess(b=b * sy / sx, a=a),
+        noise=NoiseModel(c=c, d=d),
+        op_offset=op_mean,
+        pv_offset=mu + sy * oe.offset,
+        output=tuple(output),
+    )
+
+
+def _shift_phase(model: LoopModel, n: int) -> LoopModel:
+    """The model seen from sample `n` on (output oscillations keep their phase)."""
+    out = tuple(
+        Sinusoid(b.amplitude, b.period, b.phase + 2 * jnp.pi * n / b.period) if isinstance(b, Sinusoid) else b
+        for b in model.output
+    )
+    return eqx.tree_at(lambda m: m.output, model, out) if out else model
+
+
+def _heldout(model: LoopModel, op, pv, n_est: int) -> dict:
+    """Held-out figures: simulation fitness (initial state estimated on the opening
+    held-out samples), one-step and k-step prediction RMS errors."""
+    opj, pvj = jnp.asarray(op), jnp.asarray(pv)
+    n = len(op)
+    w = (jnp.arange(n) >= n_est).astype(opj.dtype)
+    m_h = _shift_phase(model, n_est)
+    _, fit_h = _jit_scored(m_h, opj, pvj, w)
+    p1 = np.asarray(_jit_predict(model, opj, pvj, 1))
+    pk = np.asarray(_jit_predict(model, opj, pvj, K_STEP))
+    h = slice(n_est + 20, n)
+
+    def rms(e):
+        with np.errstate(all="ignore"):
+            v = float(np.sqrt(np.mean(e**2)))
+        return round(v, 5) if math.isfinite(v) else None
+
+    fit_v = float(fit_h)
+    return {"fitness": round(fit_v, 3) if math.isfinite(fit_v) else None, "one_step_rms": rms(pv[h] - p1[h]),
+            f"k{K_STEP}_step_rms": rms(pv[h] - pk[h])}
+
+
+@eqx.filter_jit
+def _jit_scored(model, op, pv, w):
+    return simulate_scored(model, op, pv, w)
+
+
+@eqx.filter_jit
+def _jit_predict_inner(model, op, pv, k: int):
+    return model.predict(op, pv, k)
+
+
+def _jit_predict(model, op, pv, k: int):
+    return _jit_predict_inner(model, op, pv, k)
+
+
+def _linear_valve_nominal(op, pv, n_est, s: DiagnoseSettings) -> LoopModel:
+    """A nominal model when none is given: linear valve, Box–Jenkins linear part."""
+    op_e, pv_e = op[:n_est], pv[:n_est]
+    mu, sy = float(np.mean(pv_e)), float(np.std(pv_e)) or 1.0
+    om, sx = float(np.mean(op_e)), float(np.std(op_e)) or 1.0
+    x = jnp.asarray((op - om) / sx)
+    y = jnp.asarray((pv - mu) / sy)
+    w = (jnp.arange(len(op)) < n_est).astype(x.dtype)
+    (oe, noise, _), _, _ = _fit_linear(x, y, w, s.order, list(range(1, s.max_delay + 1)), s.max_delay)
+    return _loop_model((), oe, noise, s.max_delay, mu, sy, om, sx)
+
+
+def _fit_sinusoid(z: np.ndarray, n_est: int, period: float) -> tuple[float, float, float]:
+    """Amplitude, period and phase of $A \\sin(2\\pi t / P + \\phi)$ fitted to `z[:n_est]`
+    by least squares (with a constant), the period refined within 1 % of `period`."""
+    t = np.arange(n_est)
+    best = None
+    for P in np.linspace(period * 0.99, period * 1.01, 41):
+        A = np.stack([np.sin(2 * np.pi * t / P), np.cos(2 * np.pi * t / P), np.ones(n_est)], 1)
+        coef, *_ = np.linalg.lstsq(A, z[:n_est], rcond=None)
+        r = float(np.sum((z[:n_est] - A @ coef) ** 2))
+        if best is None or r < best[0]:
+            best = (r, float(P), coef)
+    _, P, coef = best
+    return float(math.hypot(coef[0], coef[1])), P, float(math.atan2(coef[1], coef[0]))
+
+
+def _quantisation(pv: np.ndarray, residual_std: float) -> dict | None:
+    """PV values on a lattice: few distinct levels, all spaced by multiples of one step,
+    and a step that matters (at least a tenth of the residual's standard deviation)."""
+    levels = np.unique(pv)
+    if len(levels) < 3 or len(levels) > max(20, len(pv) // 5):
+        return None
+    d = np.diff(levels)
+    q = float(np.min(d[d > 1e-12 * max(1.0, np.abs(levels).max())])) if np.any(d > 0) else 0.0
+    if q <= 0:
+        return None
+    frac = float(np.mean(np.abs(d / q - np.round(d / q)) < 1e-3))
+    if frac < 0.99 or q < 0.1 * residual_std:
+        return None
+    return {"step": q, "levels": int(len(levels))}
+
+
+# --------------------------------------------------------------- diagnose
+
+
+def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
+             progress=None) -> Diagnosis:
+    """Diagnose the mismatch between `nominal` (default: a linear-valve model fitted
+    here) and the recorded loop; see the module docstring for the method.
+
+    **Arguments:** `loop`: a [`jaxstiction.Loop`][] (unbatched; masked samples are
+    dropped); `nominal`: a [`jaxstiction.LoopModel`][]; `settings`:
+    `DiagnoseSettings`; `progress`: optional callable taking a message.
+
+    **Returns:** a `Diagnosis`. Raises `ValueError` (one line) on bad data.
+    """
+    from ._checks import check_loop
+
+    say = progress or (lambda msg: None)
+    if np.ndim(loop.op) != 1:
+        raise ValueError("diagnose takes one loop, not a batch")
+    mask = np.asarray(loop.mask) > 0
+    op, pv = check_loop(np.asarray(loop.op)[mask], np.asarray(loop.pv)[mask], name="loop", min_length=300)
+    op, pv = np.asarray(op, float), np.asarray(pv, float)
+    n = len(op)
+    n_est = int(round((1 - settings.holdout) * n))
+    if n_est < 200 or n - n_est < 100:
+        raise ValueError(f"record too short for a diagnosis: {n} samples (need 200 to fit and 100 held out)")
+    given = nominal is not None
+    if nominal is None:
+        say("fitting a linear-valve nominal model")
+        nominal = _linear_valve_nominal(op, pv, n_est, settings)
+    opj, pvj = jnp.asarray(op), jnp.asarray(pv)
+    t = jnp.arange(n)
+    w_est = (t < n_est).astype(opj.dtype)
+    whole = jnp.ones_like(opj)
+    sim_nom = np.asarray(_jit_scored(nominal, opj, pvj, whole)[0])
+    z = pv - sim_nom
+    say("locating")
+    located = locate(op[:n_est], z[:n_est], seed=settings.seed)
+
+    # ------------------------------ baseline: the nominal model, its poles held
+    b_nom, a_nom = (np.asarray(v) for v in nominal.process.polynomials())
+    nz = np.flatnonzero(np.abs(b_nom) > 0)
+    delay = max(1, int(nz[0]) if nz.size else 1)
+    nb = max(1, int(nz[-1] - delay + 1) if nz.size else 1)
+    # candidate blocks act on the nominal chain's output (the valve position)
+    op_in = np.asarray(nominal.valve(opj)) if nominal.chain else op
+    mu, sy = float(np.mean(pv[:n_est])), float(np.std(pv[:n_est])) or 1.0
+    om, sx = float(np.mean(op_in[:n_est])), float(np.std(op_in[:n_est])) or 1.0
+    y = (pvj - mu) / sy
+    op_in_j = jnp.asarray(op_in)
+    base_x = (op_in_j - om) / sx
+    a0 = jnp.asarray(a_nom)
+    w_fit = w_est * (t >= 50)  # filter transients
+    d_j = jnp.asarray(delay)
+    one = jnp.ones(1)
+    # the noise model (held for every candidate) is that of the linear valve with
+    # B and the offset refitted by output error: the nominal's own residual may
+    # hold the whole unmodelled effect, which a noise model must not absorb
+    th_oe = _refit_b(base_x, y, w_fit, a0, one, one, d_j, nb)
+    b_oe = jnp.concatenate([jnp.zeros(delay), th_oe[:nb]])
+    r_oe = y - lfilter(b_oe, a0, base_x) - th_oe[nb]
+    nm = fit_noise_model(r_oe, w_fit, order=1)
+    c0, d0 = jnp.concatenate([one, nm.c]), jnp.concatenate([one, nm.d])
+    if not (bool(nm.result == optx.RESULTS.successful) and bool(is_stable(c0)) and bool(is_stable(d0))):
+        # an ARMA fit that failed or left the unit circle: an AR(1) noise model instead
+        ar = float(np.clip(np.asarray(lstsq(lagged(r_oe, 1) * w_fit[:, None], r_oe * w_fit, 1e-12))[0], -0.99, 0.99))
+        c0, d0 = one, jnp.asarray([1.0, -ar])
+
+    def with_block(chain, x):
+        """The nominal with `chain` added to its input chain, B and offset refitted."""
+        th = np.asarray(_refit_b(x, y, w_fit, a0, c0, d0, d_j, nb))
+        b = np.concatenate([np.zeros(delay), th[:nb]]) * sy / sx
+        return LoopModel(chain=tuple(nominal.chain) + tuple(chain), process=LinearProcess(b=b, a=a_nom),
+                         noise=NoiseModel(c=c0, d=d0), op_offset=om, pv_offset=mu + sy * th[nb],
+                         output=tuple(nominal.output))
+
+    # the reference every block must beat: the linear valve, refitted the same way
+    base_model = with_block((), base_x)
+
+    # ------------------------------------------------- candidate grid statistics
+    fams = _input_candidates(op_in[:n_est], settings.grid)
+    paths, slices = _family_paths(op_in_j, fams)
+    xs = (paths - om) / sx
+    fmin, fmax = 4.0 / n_est, 0.25
+    count = float(jnp.sum(w_fit))
+    say(f"scoring {paths.shape[0]} input blocks, oscillations and drift")
+
+    def stats(yy, zz):
+        v_in, v_sin, v0, f_best = _statistics(yy, xs, base_x, w_fit, a0, c0, d0, d_j, nb, fmin, fmax)
+        v_in = np.asarray(v_in)
+        T = {f: count * float(np.log(float(v0) / np.min(v_in[sl]))) for f, sl in slices.items()}
+        T["external_oscillation"] = count * float(np.log(float(v0) / float(v_sin)))
+        T["drift"] = float(_drift_stat(jnp.asarray(zz), w_est))
+        return T, v_in, float(f_best)
+
+    base_sim = np.asarray(_jit_scored(base_model, opj, pvj, whole)[0])
+    T_obs, v_in, f_best = stats(y, pv - base_sim)
+
+    # ---------------------------------------------------- parametric bootstrap
+    say(f"bootstrap: {settings.bootstrap} replicates")
+    one = np.ones(1)
+    c_n, d_n = np.asarray(c0), np.asarray(d0)
+    eps0 = np.asarray(lfilter(jnp.asarray(d_n), jnp.asarray(c_n), jnp.asarray(pv - base_sim)))
+    sig = float(np.std(eps0[20:n_est]))
+    key = jr.key(settings.seed)
+    T_boot, pv_boot = [], []
+    for b in range(settings.bootstrap):
+        e = np.asarray(jr.normal(jr.fold_in(key, b), (n + 300,))) * sig
+        v = np.asarray(lfilter(jnp.asarray(c_n), jnp.asarray(d_n), jnp.asarray(e)))[300:]
+        pv_b = base_sim + v
+        T_boot.append(stats((jnp.asarray(pv_b) - mu) / sy, v)[0])
+        pv_boot.append(v)
+    names = list(T_obs)
+    Tb = np.array([[tb[f] for f in names] for tb in T_boot])  # (B, F)
+    med = np.median(Tb, axis=0)
+    mean, std = Tb.mean(axis=0), np.maximum(Tb.std(axis=0, ddof=1), 1e-9)
+    # each family's null from the bootstrap (normal approximation of its tail, so the
+    # p-values are not limited to 1/(B+1)), Bonferroni over the families searched
+    pvals = {f: min(1.0, len(names) * _normal_sf((T_obs[f] - mean[i]) / std[i])) for i, f in enumerate(names)}
+
+    # --------------------------------------------------------------- refit & prove
+    say("refitting the significant candidates")
+    w_hold = 1.0 - w_est
+    nominal_heldout = _heldout(nominal, op, pv, n_est)
+    before = nominal_heldout
+
+    def null_gain(model, reference=None):
+        """Held-out gains of `model` over `reference` (default: the nominal) on the
+        bootstrap records (simulated from `reference` when one is given, else from the
+        refitted linear valve) plus fresh noise. Their standard deviation is the
+        run-to-run spread of a gain: the noise common to both scores cancels."""
+        ref = nominal if reference is None else reference
+        data = base_sim if reference is None else np.asarray(_jit_scored(ref, opj, pvj, whole)[0])
+        m_h, r_h = _shift_phase(model, n_est), _shift_phase(ref, n_est)
+        g = []
+        for v in pv_boot:
+            p = jnp.asarray(data + v)
+            g.append(float(_jit_scored(m_h, opj, p, w_hold)[1] - _jit_scored(r_h, opj, p, w_hold)[1]))
+        return float(np.mean(g)), float(np.std(g))
+
+    def param_table(fam, sl):
+        vv = v_in[sl]
+        k = int(np.argmin(vv))
+        params = dict(fams[fam][1][k])
+        inside = count * np.log(vv / vv[k]) <= 3.84  # profile: chi2(1, 95 %)
+        iv = {}
+        for key_ in params:
+            vals = np.array([fams[fam][1][i][key_] for i in range(len(vv)) if inside[i] and key_ in fams[fam][1][i]])
+            if vals.size:
+                iv[key_] = [round(float(vals.min()), 4), round(float(vals.max()), 4)]
+        return k, {k_: round(float(v_), 4) for k_, v_ in params.items()}, iv
+
+    findings = []
+    dof = {"stiction": 2, "external_oscillation": 3}
+    for fam in names:
+        # significant: beyond the bootstrap null *and* better than the nominal itself
+        sig_f = pvals[fam] <= settings.alpha and T_obs[fam] > 0
+        ev = {"statistic": round(T_obs[fam], 3), "p_value": round(pvals[fam], 4),
+              "bootstrap_median": round(float(med[names.index(fam)]), 3), "significant": bool(sig_f)}
+        iv = {}
+        if fam in INPUT_FAMILIES:
+            k, params, iv = param_table(fam, slices[fam])
+            blk = fams[fam][0][k]
+            if sig_f:
+                model = with_block((blk,), (blk(op_in_j) - om) / sx)
+        elif fam == "external_oscillation":
+            amp, P, ph = _fit_sinusoid(pv - base_sim, n_est, 1.0 / max(f_best, 1e-9))
+            params = {"amplitude": round(amp, 4), "period_samples": round(float(P), 3), "phase": round(ph, 4)}
+            model = eqx.tree_at(lambda m: m.output, base_model, (Sinusoid(amp, P, ph),))
+        else:  # drift: an integrating noise model; no simulation gain possible
+            zd = np.diff(pv - base_sim)[: n_est - 1]
+            Xd = np.stack([zd[1:-1], zd[:-2]], 1)
+            ad, *_ = np.linalg.lstsq(Xd, zd[2:], rcond=None)
+            d_int = jnp.asarray(np.convolve([1.0, -ad[0], -ad[1]], [1.0, -1.0]))
+            model = eqx.tree_at(lambda m: m.noise, base_model, NoiseModel(c=jnp.ones(1), d=d_int))
+            params = {"innovation_std": round(float(np.std(zd[2:] - Xd @ ad)), 4)}
+        if not sig_f:
+            findings.append(Finding(fam, {**params, "interval": iv}, ev, before, before, False))
+            continue
+        after = _heldout(model, op, pv, n_est)
+        gain = _diff(after["fitness"], before["fitness"])
+        kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
+        sim_after = np.asarray(_jit_scored(model, opj, pvj, whole)[0])
+        eps_after, _ = ar_whiten((pv - sim_after)[:n_est], 2)
+        cc = cross_correlation(op[:n_est], eps_after)
+        ev.update(heldout_gain=round(gain, 3), k_step_gain=round(float(kgain), 5),
+                  residual_cross_correlation_passes=cc["passes"],
+                  rank_score=round(T_obs[fam] - 2 * dof.get(fam, 1), 3))
+        if fam == "drift":
+            ok = kgain > 0
+            ev["note"] = "drift is a stochastic disturbance: it cannot improve simulation fit, only prediction"
+        else:
+            _, spread = null_gain(model)
+            need = max(0.5, spread)
+            ev.update(spread=round(spread, 3), gain_needed=round(need, 3))
+            ok = gain > need
+        findings.append(Finding(fam, {**params, "interval": iv}, ev, before, after, bool(ok), model))
+
+    # stiction versus deadband: J must be significantly above zero
+    acc = {f.effect: f for f in findings if f.accepted}
+    if "stiction" in acc and "deadband" in acc:
+        vs = float(np.min(v_in[slices["stiction"]]))
+        vd = float(np.min(v_in[slices["deadband"]]))
+        if count * np.log(vd / vs) < 3.84:
+            acc.pop("stiction")
+            findings = [
+                Finding(f.effect, f.parameters, {**f.evidence, "note": "J is not significantly above 0: deadband"},
+                        f.heldout_before, f.heldout_after, False, f.model) if f.effect == "stiction" else f
+                for f in findings
+            ]
+    # rank: residual tests passed first, then the penalised likelihood ratio
+    det = sorted((f for f in acc.values() if f.effect != "drift"),
+                 key=lambda f: (not f.evidence["residual_cross_correlation_passes"], -f.evidence["rank_score"]))
+    ordered = det + [f for f in acc.values() if f.effect == "drift"]
+    verdict, model, runner = "none", base_model, None
+    if ordered:
+        verdict, model = ordered[0].effect, ordered[0].model
+        runner = ordered[1].effect if len(ordered) > 1 else None
+    # two effects: does an external oscillation remain once the best input block is in?
+    if verdict in INPUT_FAMILIES:
+        i_osc = names.index("external_oscillation")
+        zw = pv - np.asarray(_jit_scored(model, opj, pvj, whole)[0])
+        r = np.asarray(lfilter(d0, c0, jnp.asarray(zw / sy))) * np.asarray(w_fit)
+        m8 = 8 * n
+        R = np.fft.rfft(r, n=m8)
+        f = np.arange(R.shape[0]) / m8
+        red = np.where((f >= fmin) & (f <= fmax), 2 * np.abs(R) ** 2 / count, 0.0)
+        k = int(np.argmax(red))
+        V = float(np.sum(r**2)) / count
+        T2 = count * float(np.log(V / max(V - red[k] / count, 1e-300)))
+        p2 = min(1.0, len(names) * _normal_sf((T2 - mean[i_osc]) / std[i_osc]))
+        if p2 <= settings.alpha:
+            amp, Pk, ph = _fit_sinusoid(zw, n_est, 1.0 / f[k])
+            both = eqx.tree_at(lambda m: m.output, model, (Sinusoid(amp, Pk, ph),))
+            after2 = _heldout(both, op, pv, n_est)
+            _, g_std = null_gain(both, model)
+            gain2 = _diff(after2["fitness"], ordered[0].heldout_after["fitness"])
+            if gain2 > max(0.5, g_std):
+                findings.append(Finding("external_oscillation", {
+                    "amplitude": round(amp, 4), "period_samples": round(float(Pk), 3), "phase": round(ph, 4),
+                    "with": verdict}, {
+                    "statistic": round(T2, 3), "p_value": round(p2, 4), "significant": True,
+                    "heldout_gain": round(_diff(after2["fitness"], before["fitness"]), 3),
+                    "gain_over_first_block": round(gain2, 3),
+                    "note": f"second block, on top of {verdict}"}, before, after2, True, both))
+                findings = [f_ for f_ in findings if not (f_.effect == "external_oscillation" and "with" not in
+                                                          f_.parameters)]
+                model = both
+                runner = "external_oscillation"
+    quant = _quantisation(pv, float(np.std((pv - base_sim)[:n_est])))
+    if quant is not None:
+        findings.append(Finding("quantization", quant, {
+            "note": "sensor quantisation changes no simulation: no held-out gain is claimed"}, before, before, True))
+        if verdict == "none":
+            verdict = "quantization"
+    order = {id(f): i for i, f in enumerate(ordered)}
+    findings.sort(key=lambda f: (not f.accepted, order.get(id(f), len(order)), -f.evidence.get("statistic", -1e9)
+                                 if f.evidence.get("statistic") is not None else 0.0))
+    not_ident = ["a constant sensor offset on PV cannot be told from the process offset",
+                 "where in the chain a static block sits (before or after the valve characteristic) is not "
+                 "identifiable from OP and PV alone"]
+    if not given:
+        not_ident.append("no nominal model was given: dead time and valve characteristic are judged against "
+                         "a linear-valve model fitted here, which absorbs part of them")
+    sim_after = np.asarray(_jit_scored(model, opj, pvj, whole)[0])
+    located["whiteness_after"] = whiteness(ar_whiten((pv - sim_after)[:n_est], 2)[0])
+    series = {"op": op, "pv": pv, "sim_nominal": sim_nom, "sim_after": sim_after, "residual": z,
+              "spectrum": spectrum_lines(z[:n_est])}
+    return Diagnosis(verdict=verdict, findings=tuple(findings), located=located, nominal=nominal, model=model,
+                     heldout_nominal=nominal_heldout, not_identifiable=tuple(not_ident), runner_up=runner,
+                     n_estimation=n_est, series=series)

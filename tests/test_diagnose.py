@@ -1,0 +1,168 @@
+"""Mismatch diagnosis: the locating tests, the whitened least squares behind the
+candidate grid, and end-to-end verdicts on concealed-effect scenarios."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_cli import _assert_one_line_error, _csv, run
+
+import jaxstiction as js
+from jaxstiction._diagnose import _drift_stat, _quantisation, _refit_b
+from jaxstiction._filters import lfilter
+from jaxstiction._locate import cross_correlation, segment_power, spectrum_lines, whiteness
+
+
+FAST = js.DiagnoseSettings(bootstrap=19)
+
+
+# ------------------------------------------------------------------ locate
+
+
+def test_whiteness_band():
+    rng = np.random.default_rng(0)
+    white = rng.normal(size=2000)
+    coloured = np.asarray(lfilter(jnp.ones(1), jnp.asarray([1.0, -0.5]), jnp.asarray(white)))
+    assert whiteness(white)["white"]
+    assert not whiteness(coloured)["white"]
+
+
+def test_cross_correlation_positive_lags_only():
+    rng = np.random.default_rng(1)
+    u = np.cumsum(rng.normal(size=3000))
+    e = rng.normal(size=3000)
+    assert cross_correlation(u, e)["passes"]
+    du = np.diff(u, prepend=u[0])
+    led = e + 0.5 * np.concatenate([np.zeros(3), du[:-3]])  # the input leads the residual by 3
+    assert 3 in cross_correlation(u, led)["lags_outside"]
+    # an input effect spread over lags 3 and 4 (one lag outside is allowed by chance)
+    spread = led + 0.5 * np.concatenate([np.zeros(4), du[:-4]])
+    cc = cross_correlation(u, spread)
+    assert not cc["passes"] and {3, 4} <= set(cc["lags_outside"])
+    # a residual that leads the input (feedback) is not flagged at positive lags
+    lag = np.concatenate([du[3:], np.zeros(3)])
+    assert 3 not in cross_correlation(u, e + 0.5 * lag)["lags_outside"]
+
+
+def test_spectrum_finds_the_line():
+    rng = np.random.default_rng(2)
+    t = np.arange(2000)
+    z = rng.normal(size=2000) + 1.0 * np.sin(2 * np.pi * t / 37)
+    lines = spectrum_lines(z)["lines"]
+    assert lines and abs(lines[0]["period_samples"] - 37) < 2
+    assert not spectrum_lines(rng.normal(size=2000))["narrow"]
+
+
+def test_segment_power_flags_reversals():
+    rng = np.random.default_rng(3)
+    u = np.repeat(rng.choice([-1.0, 1.0], 150), 20).cumsum()
+    e = rng.normal(size=u.size)
+    du = np.diff(u, prepend=u[0])
+    rev = np.flatnonzero(np.sign(du[1:]) != np.sign(du[:-1])) + 1
+    for i in rev:
+        e[i : i + 5] *= 4
+    seg = {s["segment"]: s for s in segment_power(u, e)}
+    assert seg["after_reversal"]["significant"] and seg["after_reversal"]["power_ratio"] > 2
+
+
+def test_drift_statistic_grows_with_a_random_walk():
+    rng = np.random.default_rng(4)
+    ar = np.asarray(lfilter(jnp.ones(1), jnp.asarray([1.0, -0.9]), jnp.asarray(rng.normal(size=2000))))
+    walk = ar + np.cumsum(rng.normal(0, 0.3, 2000))
+    w = jnp.ones(2000)
+    assert float(_drift_stat(jnp.asarray(walk), w)) > 3 * float(_drift_stat(jnp.asarray(ar), w))
+
+
+def test_quantisation_lattice():
+    rng = np.random.default_rng(5)
+    y = np.cumsum(rng.normal(size=2000))
+    q = _quantisation(2.0 * np.round(y / 2.0), 3.0)
+    assert q is not None and abs(q["step"] - 2.0) < 1e-12
+    assert _quantisation(y, 3.0) is None
+    assert _quantisation(2.0 * np.round(y / 2.0), 100.0) is None  # a step far below the noise does not matter
+
+
+def test_refit_b_matches_numpy():
+    """The whitened least squares against a slow NumPy reference."""
+    rng = np.random.default_rng(6)
+    n = 600
+    x = np.cumsum(rng.normal(size=n)) * 0.1
+    a0 = np.array([1.0, -1.5, 0.7])
+    c, d = np.array([1.0, 0.3]), np.array([1.0, -0.8])
+    y = np.asarray(lfilter(jnp.asarray([0.0, 1.0, 0.5]), jnp.asarray(a0), jnp.asarray(x))) + 0.2
+    y = y + 0.05 * rng.normal(size=n)
+    w = np.ones(n)
+    w[:30] = 0
+    th = np.asarray(_refit_b(jnp.asarray(x), jnp.asarray(y), jnp.asarray(w), jnp.asarray(a0), jnp.asarray(c),
+                             jnp.asarray(d), jnp.asarray(1), 2))
+
+    def filt(b, a, v):  # direct-form difference equation, obviously correct
+        out = np.zeros_like(v)
+        for t in range(len(v)):
+            acc = sum(b[k] * v[t - k] for k in range(len(b)) if t - k >= 0)
+            acc -= sum(a[k] * out[t - k] for k in range(1, len(a)) if t - k >= 0)
+            out[t] = acc / a[0]
+        return out
+
+    xf = filt(d, np.convolve(c, a0), x)
+    X = np.stack([np.concatenate([[0.0], xf[:-1]]), np.concatenate([[0.0, 0.0], xf[:-2]]),
+                  filt(d, c, np.ones(n))], axis=1)
+    ref, *_ = np.linalg.lstsq(X[w > 0], filt(d, c, y)[w > 0], rcond=None)
+    np.testing.assert_allclose(th, ref, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(th[:2], [1.0, 0.5], atol=0.05)
+
+
+# ------------------------------------------------------------- end to end
+
+
+@pytest.mark.parametrize("case,expected", [("P0", "none"), ("P5", "external_oscillation")])
+def test_verdicts(case, expected):
+    sc = js.make_scenario(case, seed=0)
+    d = js.diagnose(sc.full.loop, sc.nominal, FAST)
+    assert d.verdict == expected
+    if expected != "none":
+        top = d.findings[0]
+        assert top.accepted and top.effect == expected
+        assert top.heldout_after["fitness"] > top.heldout_before["fitness"]
+    else:
+        assert not [f for f in d.findings if f.accepted]
+    assert json.loads(json.dumps(d.to_json()))["verdict"] == expected
+
+
+def test_bad_input_one_line():
+    sc = js.make_scenario("P0", seed=0)
+    loop = sc.full.loop
+    with pytest.raises(ValueError, match="constant"):
+        js.diagnose(js.make_loop(np.full(3000, 40.0), np.asarray(loop.pv)), sc.nominal, FAST)
+    with pytest.raises(ValueError, match="too short|at least"):
+        js.diagnose(js.make_loop(np.asarray(loop.op)[:250], np.asarray(loop.pv)[:250]), sc.nominal, FAST)
+
+
+def test_cli_diagnose_json(tmp_path):
+    sc = js.make_scenario("P1", seed=1)
+    rec = sc.full
+    f = _csv(tmp_path / "p1.csv", np.asarray(rec.op), np.asarray(rec.pv))
+    m = tmp_path / "nominal.json"
+    m.write_text(json.dumps(js.nominal_to_dict(sc.nominal)))
+    res = run("diagnose", str(f), "--model", str(m), "--json", "--bootstrap", "19", "--out", str(tmp_path / "o"))
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert out["verdict"] in js.VERDICTS
+    assert out["verdict"] == "stiction"
+    for k in ("findings", "located"):
+        assert k in out
+    top = out["findings"][0]
+    for k in ("effect", "parameters", "evidence", "heldout_before", "heldout_after"):
+        assert k in top
+    assert (tmp_path / "o" / "diagnosis.png").exists()
+
+
+def test_cli_diagnose_unstable_nominal(tmp_path):
+    sc = js.make_scenario("P0", seed=0)
+    f = _csv(tmp_path / "p0.csv", np.asarray(sc.full.op), np.asarray(sc.full.pv))
+    bad = js.nominal_to_dict(sc.nominal)
+    bad["process"]["a"] = [1.0, -2.5, 1.2]
+    m = tmp_path / "bad.json"
+    m.write_text(json.dumps(bad))
+    _assert_one_line_error(run("diagnose", str(f), "--model", str(m), "--json"), "unstable")
