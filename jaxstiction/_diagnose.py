@@ -321,12 +321,8 @@ def _jit_scored(model, op, pv, w):
 
 
 @eqx.filter_jit
-def _jit_predict_inner(model, op, pv, k: int):
-    return model.predict(op, pv, k)
-
-
 def _jit_predict(model, op, pv, k: int):
-    return _jit_predict_inner(model, op, pv, k)
+    return model.predict(op, pv, k)
 
 
 def _linear_valve_nominal(op, pv, n_est, s: DiagnoseSettings) -> LoopModel:
@@ -498,18 +494,22 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     nominal_heldout = _heldout(nominal, op, pv, n_est)
     before = nominal_heldout
 
+    ref_scores = {}  # id(reference) -> (records, its held-out score on each)
+
     def null_gain(model, reference=None):
         """Held-out gains of `model` over `reference` (default: the nominal) on the
         bootstrap records (simulated from `reference` when one is given, else from the
         refitted linear valve) plus fresh noise. Their standard deviation is the
         run-to-run spread of a gain: the noise common to both scores cancels."""
         ref = nominal if reference is None else reference
-        data = base_sim if reference is None else np.asarray(_jit_scored(ref, opj, pvj, whole)[0])
-        m_h, r_h = _shift_phase(model, n_est), _shift_phase(ref, n_est)
-        g = []
-        for v in pv_boot:
-            p = jnp.asarray(data + v)
-            g.append(float(_jit_scored(m_h, opj, p, w_hold)[1] - _jit_scored(r_h, opj, p, w_hold)[1]))
+        if id(ref) not in ref_scores:  # the reference's scores serve every candidate
+            data = base_sim if reference is None else np.asarray(_jit_scored(ref, opj, pvj, whole)[0])
+            recs = [jnp.asarray(data + v) for v in pv_boot]
+            r_h = _shift_phase(ref, n_est)
+            ref_scores[id(ref)] = (recs, [float(_jit_scored(r_h, opj, p, w_hold)[1]) for p in recs])
+        recs, base = ref_scores[id(ref)]
+        m_h = _shift_phase(model, n_est)
+        g = [float(_jit_scored(m_h, opj, p, w_hold)[1]) - b for p, b in zip(recs, base)]
         return float(np.mean(g)), float(np.std(g))
 
     def param_table(fam, sl):
