@@ -2,8 +2,10 @@
 
 Compares, in one run and on the same loops,
 
-- JAX: `jax.jit(jax.vmap(relax(relax_problem(y, phi, n))))` over a batch of loops
-  (QR compression + `optx.fixed_point` relaxation, float64, CPU), and
+- JAX: `jax.jit(jax.vmap(relax(relax_problem(y, phi, n, method=C), method=M)))`
+  over a batch of loops (float64, CPU); by default C = "gram" (the Gram/Cholesky
+  compression, for noisy records such as these) and M = "alternation"; choose with
+  `--compression qr` and `--method variable_projection`; and
 - NumPy: `tests/reference.py::relax_reference`, the plain full-data implementation
   (explicit regression matrices, `numpy.linalg.lstsq`), one loop at a time,
 
@@ -12,12 +14,13 @@ and the batch size. Loops are paper_sim-like closed loops (BJ process, PI contro
 Kano stiction S=20, J=2, 5 % noise power; `jaxstiction.simulate_loop` with
 the paper_sim plant), one PRNG seed per loop.
 
-    cd /work/main && PYTHONPATH=. python benchmarks/bench_relax.py [--quick]
+    python benchmarks/bench_relax.py [--quick] [--json]
 
 See benchmarks/README.md for the columns.
 """
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -40,8 +43,8 @@ import jax.random as jr
 import numpy as np
 import optimistix as optx
 
-from jaxstiction._relax import relax, relax_problem
 from jaxstiction._blocks import Kano
+from jaxstiction._relax import relax, relax_problem
 from jaxstiction._scenarios import nominal_model, paper_experiment
 from jaxstiction._simulate import simulate_loop
 from jaxstiction._spline import hysteresis_regressors, scale_input, uniform_knots
@@ -86,7 +89,7 @@ def jax_fit(n):
     if n not in _FITS:
 
         def one(y, phi):
-            sol = relax(relax_problem(y, phi, n))
+            sol = relax(relax_problem(y, phi, n, method=COMPRESSION), method=METHOD)
             return sol.loss, sol.num_steps, sol.result == optx.RESULTS.successful
 
         _FITS[n] = jax.jit(jax.vmap(one))
@@ -150,13 +153,15 @@ COLS = (
 
 
 _DONE = {}
+OUT = sys.stdout
+COMPRESSION, METHOD = "gram", "alternation"
 
 
 def row(label, op, pv, N, n, m, batch, np_count, min_time):
     key = (N, n, m, batch, min(np_count, batch))
     if key in _DONE:  # the same case in another sweep: reuse its timing
-        print(f"{label:<6}" + _DONE[key][6:] + "  (same case as above)", flush=True)
-        return
+        print(f"{label:<6}" + _DONE[key][6:] + "  (same case as above)", flush=True, file=OUT)
+        return None
     y, phi = prepare(op[:batch, :N], pv[:batch, :N], m)
     j = time_jax(y, phi, n, min_time)
     k = min(np_count, batch)
@@ -186,7 +191,11 @@ def row(label, op, pv, N, n, m, batch, np_count, min_time):
         f"{dloss:+.1e}",
     )
     _DONE[key] = line
-    print(line, flush=True)
+    print(line, flush=True, file=OUT)
+    return dict(sweep=label, N=N, n=n, m=m, batch=batch, compile_s=j["compile"], jax_ms_per_loop=1e3 * j["t"] / batch,
+                numpy_ms_per_loop=1e3 * r["t"] / k, speedup=jax_lps / np_lps, jax_steps_max=int(j["steps"].max()),
+                numpy_steps_mean=float(r["steps"].mean()), jax_ok=float(j["ok"].mean()),
+                numpy_ok=float(r["ok"].mean()), dloss_rel=float(dloss))
 
 
 def main():
@@ -200,7 +209,16 @@ def main():
         default=None,
         help="loops timed with NumPy per row (default 16, quick 4)",
     )
+    ap.add_argument("--compression", choices=("gram", "qr"), default="gram",
+                    help="relax_problem(method=...) of the JAX kernel (default gram: these loops are noisy)")
+    ap.add_argument("--method", choices=("alternation", "variable_projection"), default="alternation",
+                    help="relax(method=...) of the JAX kernel")
+    ap.add_argument("--json", action="store_true",
+                    help="print one JSON object on stdout (the table goes to stderr)")
     args = ap.parse_args()
+    global OUT, COMPRESSION, METHOD
+    OUT = sys.stderr if args.json else sys.stdout
+    COMPRESSION, METHOD = args.compression, args.method
     q = args.quick
     np_count = args.numpy_loops or (8 if q else 16)
     min_time = 0.1 if q else 0.5
@@ -214,27 +232,35 @@ def main():
     print(
         f"jax {jax.__version__}, numpy {np.__version__}, device {jax.devices()[0]}, "
         f"float64, {os.cpu_count()} CPU(s), "
-        f"OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}"
+        f"OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}",
+        file=OUT,
     )
     t0 = time.perf_counter()
     op, pv = simulate(max(max(batches), base["batch"]), max(Ns))
     print(
         f"simulated {op.shape[0]} paper_sim-like loops of {op.shape[1]} samples "
-        f"in {time.perf_counter() - t0:.1f} s\n"
+        f"in {time.perf_counter() - t0:.1f} s\n",
+        file=OUT,
     )
-    print(HEAD.format(*COLS))
-    print("-" * len(HEAD.format(*COLS)))
+    print(HEAD.format(*COLS), file=OUT)
+    print("-" * len(HEAD.format(*COLS)), file=OUT)
     b = base
-    row("main", op, pv, b["N"], b["n"], b["m"], b["batch"], b["batch"], min_time)
+    rows = [row("main", op, pv, b["N"], b["n"], b["m"], b["batch"], b["batch"], min_time)]
     for N in Ns:
-        row("N", op, pv, N, b["n"], b["m"], sweep_batch, np_count, min_time)
+        rows.append(row("N", op, pv, N, b["n"], b["m"], sweep_batch, np_count, min_time))
     for n in ns:
-        row("n", op, pv, b["N"], n, b["m"], sweep_batch, np_count, min_time)
+        rows.append(row("n", op, pv, b["N"], n, b["m"], sweep_batch, np_count, min_time))
     for m in ms:
-        row("m", op, pv, b["N"], b["n"], m, sweep_batch, np_count, min_time)
+        rows.append(row("m", op, pv, b["N"], b["n"], m, sweep_batch, np_count, min_time))
     for B in batches:
-        row("batch", op, pv, b["N"], b["n"], b["m"], B, np_count, min_time)
-    print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+        rows.append(row("batch", op, pv, b["N"], b["n"], b["m"], B, np_count, min_time))
+    total = time.perf_counter() - t0
+    print(f"\ntotal {total:.0f} s", file=OUT)
+    if args.json:
+        head = rows[0]
+        print(json.dumps({"headline": head, "jax_ms_per_loop": head["jax_ms_per_loop"],
+                          "numpy_ms_per_loop": head["numpy_ms_per_loop"], "speedup": head["speedup"],
+                          "rows": [r for r in rows if r is not None], "total_s": total}))
 
 
 if __name__ == "__main__":

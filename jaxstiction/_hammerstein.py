@@ -34,7 +34,8 @@ class SplineSettings(eqx.Module):
     - `knot_counts`: candidate knot counts $m$ for FOE (22).
     - `max_order`: largest reduced order $l$ tried by ASYC (21).
     - `max_delay`: largest input delay (samples) tried in the reduction.
-    - `relax_steps`: cap on relaxation sweeps.
+    - `relax_steps`: cap on relaxation sweeps; `compression`: `"qr"` or `"gram"`
+      (faster, for noisy records only; see [`jaxstiction.relax_problem`][]).
     - `welch_segment`: segment length of the spectral estimates in (18).
     - `polish`: run the output-error polish after the paper's steps.
     - `range_factor`: a candidate whose simulation leaves the estimation PV range by
@@ -46,6 +47,7 @@ class SplineSettings(eqx.Module):
     max_order: int = eqx.field(static=True, default=3)
     max_delay: int = eqx.field(static=True, default=3)
     relax_steps: int = eqx.field(static=True, default=300)
+    compression: str = eqx.field(static=True, default="qr")
     welch_segment: int = eqx.field(static=True, default=128)
     polish: bool = eqx.field(static=True, default=True)
     polish_steps: int = eqx.field(static=True, default=60)
@@ -158,7 +160,7 @@ def fit_candidate(y, u, h, knots, knot_mask, weights, mask, settings: SplineSett
     the estimation samples)."""
     n, D = settings.arx_order, settings.max_delay
     phi = hysteresis_regressors(u, h, knots, knot_mask)
-    prob = relax_problem(y, phi, n, weights)
+    prob = relax_problem(y, phi, n, weights, method=settings.compression)
     rsol = relax(prob, max_steps=settings.relax_steps)
     hi = rsol.model
     x = phi @ hi.beta

@@ -145,3 +145,55 @@ def is_stable(a, margin=0.0):
         denom = jnp.where(jnp.abs(k) < 1.0, 1.0 - k**2, 1.0)
         a = ((a - k * a[::-1]) / denom)[:deg]
     return ok
+
+
+def cholesky_upper(G):
+    """Upper-triangular $R$ with $R^T R = G$ for a symmetric positive-definite `G`,
+    left-looking, in pure JAX (a pivot that is not positive is clamped to the
+    smallest normal number: the caller regularises `G` first)."""
+    n = G.shape[0]
+    idx = jnp.arange(n)
+    tiny = jnp.finfo(G.dtype).tiny
+
+    def step(j, R):
+        col = jnp.where(idx < j, R[:, j], 0.0)  # R[:j, j]
+        v = G[j, :] - col @ R  # G[j, :] - sum_{i<j} R[i, j] R[i, :]
+        d = jnp.sqrt(jnp.maximum(v[j], tiny))
+        return R.at[j, :].set(jnp.where(idx >= j, v / d, 0.0))
+
+    return jax.lax.fori_loop(0, n, step, jnp.zeros_like(G))
+
+
+def gram_r(A, weights, ridge=1e-13):
+    r"""The triangular factor $R$ of $\mathrm{diag}(w)^{1/2} A$ (rows weighted by
+    `weights` in {0, 1}) from its Gram matrix: one matrix product and a Cholesky
+    factorisation of the column-scaled Gram matrix plus `ridge` on its diagonal.
+
+    This forms a normal matrix, which squares the condition number. It is used only
+    where that was shown to be harmless (the relaxation's compression, see
+    `_relax.relax_problem`): there the criterion, not the coefficients, is what the
+    fit needs, and the two factorisations give the same minimum to ~1e-10 relative."""
+    Aw = A * weights[:, None]
+    G = Aw.T @ Aw
+    s = jnp.sqrt(jnp.diag(G))
+    s = jnp.where(s > 0, s, 1.0)
+    Gs = G / (s[:, None] * s[None, :]) + ridge * jnp.eye(G.shape[0], dtype=G.dtype)
+    return cholesky_upper(Gs) * s[None, :]
+
+
+def spd_solve(A, b):
+    """Solve $A x = b$ for a small symmetric positive-definite `A` by the pure-JAX
+    Cholesky factor (`cholesky_upper`) and two triangular sweeps."""
+    R = cholesky_upper(A)
+    n = A.shape[0]
+    idx = jnp.arange(n)
+
+    def fwd(i, z):  # R^T z = b
+        return z.at[i].set((b[i] - jnp.where(idx < i, R[:, i], 0.0) @ z) / R[i, i])
+
+    def back(k, x):  # R x = z
+        i = n - 1 - k
+        return x.at[i].set((z[i] - jnp.where(idx > i, R[i, :], 0.0) @ x) / R[i, i])
+
+    z = jax.lax.fori_loop(0, n, fwd, jnp.zeros_like(b))
+    return jax.lax.fori_loop(0, n, back, jnp.zeros_like(b))

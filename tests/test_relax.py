@@ -163,8 +163,9 @@ def reference_fit(loop):
 
 @eqx.filter_jit
 def _fixed_point_no_ridge(y, phi):
-    """The same iteration as `relax`, with plain least squares in both steps."""
-    prob = relax_problem(y, phi, ORDER)
+    """The alternation of `relax`, with plain least squares in both steps, on the
+    backward-stable (Householder QR) compression."""
+    prob = relax_problem(y, phi, ORDER, method="qr")
     sweep = lambda m, pr: relax_sweep(m, pr, ridge=0.0)
     init = sweep(relax_init(prob), prob)
     sol = optx.fixed_point(
@@ -276,7 +277,9 @@ def test_jit_matches_no_jit(loop):
     a = relax(relax_problem(y, phi, ORDER), **TIGHT)
     b = fit_tight(y, phi)
     assert _ok(a.result) and _ok(b.result)
-    assert int(a.num_steps) == int(b.num_steps)
+    # op-by-op and fused code round the Gram matrix differently at 1e-16, which can
+    # move the tight stopping test across its threshold by one sweep
+    assert abs(int(a.num_steps) - int(b.num_steps)) <= 1
     for u, v in zip(jax.tree.leaves(a.model), jax.tree.leaves(b.model)):
         np.testing.assert_allclose(u, v, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(a.loss, b.loss, rtol=1e-10)
@@ -382,3 +385,39 @@ def test_parameter_recovery_linear_part():
     # leaves ~1e-3 in a, b. The unregularised iteration recovers them to 1e-8 above.
     np.testing.assert_allclose(sol.model.a, a_true, atol=5e-3)
     np.testing.assert_allclose(sol.model.b, b_true * s, atol=5e-3)
+
+
+# ------------------------------------------------------- faster schemes, same minimum
+
+
+@eqx.filter_jit
+def _fit_with(y, phi, compress, method):
+    return relax(relax_problem(y, phi, ORDER, method=compress), method=method, **TIGHT)
+
+
+def test_gram_and_qr_compressions_give_the_same_minimum(loops):
+    """The Gram/Cholesky compression (fast) and the Householder QR (backward
+    stable) of [Z y] lead to the same minimum: same criterion, same valve output."""
+    for y, phi in loops:
+        g = _fit_with(y, phi, "gram", "alternation")
+        q = _fit_with(y, phi, "qr", "alternation")
+        assert _ok(g.result) and _ok(q.result)
+        np.testing.assert_allclose(float(g.loss), float(q.loss), rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(phi @ g.model.beta), np.asarray(phi @ q.model.beta), atol=1e-6)
+        np.testing.assert_allclose(g.model.a, q.model.a, atol=1e-6)
+
+
+def test_variable_projection_reaches_the_alternation_minimum(loops, reference_fit):
+    """Variable projection then alternation ends at the relaxation's fixed point
+    (same criterion, b and valve output as the alternation alone and as the NumPy
+    reference) in far fewer sweeps."""
+    for i, (y, phi) in enumerate(loops):
+        lm = _fit_with(y, phi, "qr", "variable_projection")
+        alt = _fit_with(y, phi, "qr", "alternation")
+        assert _ok(lm.result) and _ok(alt.result)
+        np.testing.assert_allclose(float(lm.loss), float(alt.loss), rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(phi @ lm.model.beta), np.asarray(phi @ alt.model.beta), atol=1e-5)
+        np.testing.assert_allclose(lm.model.b, alt.model.b, atol=1e-5)
+        assert int(lm.num_steps) < int(alt.num_steps)
+        if i == 0:
+            np.testing.assert_allclose(float(lm.loss), reference_fit.loss, rtol=1e-8)
