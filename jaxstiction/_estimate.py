@@ -21,7 +21,7 @@ from ._criteria import foe, score, ScoreSettings, simulate_scored
 from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinModel, SplineSettings
 from ._loop import Loop
 from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
-from ._physical import fit_physical, PhysicalSettings
+from ._physical import fit_oe, fit_physical, PhysicalSettings, valve_from
 from ._reduce import fit_noise_model
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 
@@ -61,6 +61,10 @@ class Settings(eqx.Module):
             raise ValueError(f"`validate` must be in [0, 1), got {self.validate}")
 
 
+# deadband widths tried, as multiples of the physical fit's S
+DEADBAND_WIDTHS = (0.5, 0.7, 0.85, 1.0, 1.2)
+
+
 def min_length(settings: Settings) -> int:
     """Fewest estimation samples the chosen orders can be fitted from."""
     s = settings.spline
@@ -75,10 +79,15 @@ class LoopFit(eqx.Module):
     - `model`: the chosen [`jaxstiction.LoopModel`][] in engineering units (OP in %,
       PV in its units); `kind` 0 = spline valve, 1 = physical (Kano) valve.
     - `paper`: the paper's literal method (literal direction rule, no polish);
-      `spline`, `physical`: the best model of each family.
+      `spline`, `physical`: the best model of each family; `linear`, `deadband`: a
+      linear valve and a deadband (Kano with J = 0, its width searched around S),
+      each with a Box–Jenkins linear part like the physical model's: the nulls
+      against which stiction is judged (see [`jaxstiction.verdict`][]).
     - `fitness`: simulation fitness (34) on the validation part (on the estimation
       data when `validate == 0`), initial state estimated from its opening samples;
-      `fitness_estimation`, `fitness_paper`, `fitness_spline`, `fitness_physical`.
+      `fitness_estimation`, `fitness_paper`, `fitness_spline`, `fitness_physical`,
+      `fitness_linear`, `fitness_deadband`; the `*_estimation` fitnesses score the
+      last three on the estimation samples.
     - `band_percent`: apparent stiction band (% of OP): Kano's S for the physical
       model, else the width of the spline loop at mid-height.
     - `S`, `J` (with 95 % profile-likelihood intervals): the physical fit.
@@ -92,12 +101,19 @@ class LoopFit(eqx.Module):
     paper: LoopModel
     spline: LoopModel
     physical: LoopModel
+    linear: LoopModel
+    deadband: LoopModel
     kind: Int[Array, ""]
     fitness: Float[Array, ""]
     fitness_estimation: Float[Array, ""]
     fitness_paper: Float[Array, ""]
     fitness_spline: Float[Array, ""]
     fitness_physical: Float[Array, ""]
+    fitness_linear: Float[Array, ""]
+    fitness_physical_estimation: Float[Array, ""]
+    fitness_linear_estimation: Float[Array, ""]
+    fitness_deadband: Float[Array, ""]
+    fitness_deadband_estimation: Float[Array, ""]
     band_percent: Float[Array, ""]
     S: Float[Array, ""]
     J: Float[Array, ""]
@@ -151,6 +167,11 @@ def _loop_model(valve0: Kano, valve1: SplineValve, b, a, offset, noise_c, noise_
         op_offset=jnp.zeros((), b.dtype),
         pv_offset=mu + sd * offset,
     )
+
+
+def _pad_model(m: LoopModel, nb: int, na: int) -> LoopModel:
+    p = m.process
+    return eqx.tree_at(lambda t: t.process, m, LinearProcess(b=_pad_to(p.b, nb), a=_pad_to(p.a, na)))
 
 
 def _crossing(u, f, level):
@@ -297,6 +318,44 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         S_int = J_int = jnp.full((2,), jnp.nan, dtype)
         delay_ph, order_ph, res_ph = 0, 0, optx.RESULTS.successful
 
+    # --------------------------------------- the null models of the verdict
+    # A linear valve, and a deadband (Kano with J = 0) at widths around the fitted
+    # S, each with the same Box-Jenkins linear part as the physical model: the
+    # stiction verdict compares the Kano valve with both (see `_verdict`).
+    pset = settings.physical
+    x_lin = scale_input(op, lo, hi)
+    x_lin, _ = jax.lax.optimization_barrier((x_lin, foe_ph))
+
+    def oe_at(x, wb, d):
+        m, cd, _ = fit_oe(x, y, wb, pset.order, d, pset.max_delay, pset.oe_steps)
+        v = jnp.sum((wb * (y - m.simulate(x, pset.max_delay))) ** 2) / jnp.maximum(jnp.sum(wb), 1.0)
+        v = jnp.where(jnp.isfinite(v) & (jnp.sum(wb) >= 0.5 * count), v, jnp.inf)
+        return (m, cd), v
+
+    def as_model(fit, v, valve0):
+        m, (c_, d_) = fit
+        b_, a_ = m.linear.polynomials(pset.max_delay)
+        return _loop_model(valve0, SplineValve.linear(lo, hi, M, dtype), b_, a_, m.offset, c_, d_, v, mu, sd, nb, na)
+
+    nb = max(nb, pset.max_delay + pset.order)
+    na = max(na, pset.order + 1)
+    lin_fits, v_lin = jax.vmap(lambda d: oe_at(x_lin, w_est, d))(jnp.arange(1, pset.max_delay + 1))
+    bl = jnp.argmin(v_lin)
+    m_lin = as_model(jax.tree.map(lambda t: t[bl], lin_fits), v_lin[bl], none)
+    S_db = jnp.where(jnp.isfinite(S), S, 0.0) * jnp.asarray(DEADBAND_WIDTHS, dtype)
+    delay_db = jnp.asarray(delay_ph if settings.use_physical else bl + 1)
+
+    def deadband_at(width):
+        x, wb = valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count)
+        return oe_at(scale_input(x, lo, hi), wb, delay_db)
+
+    db_fits, v_db = jax.vmap(deadband_at)(S_db)
+    bd = jnp.argmin(v_db)
+    m_db = as_model(jax.tree.map(lambda t: t[bd], db_fits), v_db[bd], Kano(S_db[bd], jnp.zeros((), dtype)))
+    m_spline = _pad_model(m_spline, nb, na)
+    m_paper = _pad_model(m_paper, nb, na)
+    m_phys = _pad_model(m_phys, nb, na)
+
     # ----------------------------------------------------------------- choice
     # Each model's own FOE on the estimation data: the choice never looks at the
     # validation data, and a run-away spline candidate is already excluded.
@@ -315,6 +374,11 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     fit_paper = in_turn(m_paper, w_val, fit_est)
     fit_spline = in_turn(m_spline, w_val, fit_paper)
     fit_phys = in_turn(m_phys, w_val, fit_spline) if settings.use_physical else jnp.asarray(jnp.nan, dtype)
+    fit_lin = in_turn(m_lin, w_val, fit_phys)
+    fit_phys_est = in_turn(m_phys, w_est, fit_lin) if settings.use_physical else jnp.asarray(jnp.nan, dtype)
+    fit_lin_est = in_turn(m_lin, w_est, fit_phys_est)
+    fit_db = in_turn(m_db, w_val, fit_lin_est)
+    fit_db_est = in_turn(m_db, w_est, fit_db)
 
     band_spline = spline_band(pick.model.beta, knots[ki], kmasks[ki], lo, hi)
     band = jnp.where(physical, S, band_spline)
@@ -339,12 +403,19 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         paper=m_paper,
         spline=m_spline,
         physical=m_phys,
+        linear=m_lin,
+        deadband=m_db,
         kind=physical.astype(i32),
         fitness=fit_val,
         fitness_estimation=fit_est,
         fitness_paper=fit_paper,
         fitness_spline=fit_spline,
         fitness_physical=fit_phys,
+        fitness_linear=fit_lin,
+        fitness_physical_estimation=fit_phys_est,
+        fitness_linear_estimation=fit_lin_est,
+        fitness_deadband=fit_db,
+        fitness_deadband_estimation=fit_db_est,
         band_percent=band,
         S=S,
         J=J,

@@ -1,0 +1,154 @@
+r"""The stiction verdict of a fitted loop, and its cause when it is not stiction.
+
+A loop is called sticky when Kano's stiction model *beats a linear valve* on data it
+was not fitted on: [`jaxstiction.estimate`][] fits both with the same Box–Jenkins
+linear part, so the held-out simulation fitness of the two differs only by the valve.
+The apparent band alone is no test: every fit has one.
+
+When the valve is not sticky, the cause of the loop's behaviour is named from what
+the two fits leave:
+
+- `deadband`: the Kano valve beats the linear one, but not a deadband (Kano with
+  J = 0) of about its width: a dead zone or backlash, not stick-slip;
+- `external_oscillation`: the linear valve explains OP → PV, yet its residual holds
+  a narrow spectral line: a periodic disturbance entering at the output (a loop
+  oscillating from tight tuning is explained by the linear model and is `none`);
+- `none`: nothing of the above.
+
+The thresholds ([`jaxstiction.VerdictSettings`][]) were calibrated on simulated loops
+with and without stiction and with its confounders (external oscillation, deadband,
+tight tuning, noise alone): see `benchmarks/calibrate_verdict.py`.
+
+Pure JAX: it vmaps with `estimate` over a batch of loops.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ._criteria import simulate_scored
+from ._estimate import RESULTS
+from ._loop import Loop
+
+
+CAUSES = ("none", "stiction", "deadband", "external_oscillation")
+
+
+class VerdictSettings(eqx.Module):
+    """Thresholds of [`jaxstiction.verdict`][] (static).
+
+    - `min_gain`: held-out simulation fitness (points) the Kano valve must gain over
+      the linear valve; `min_gain_estimation`: the same on the estimation samples.
+    - `min_band`: the smallest band `S` that counts, as a fraction of the OP range
+      (a stiction limit cycle moves OP by about the band; a Kano fit with a band
+      far below the OP's travel is mimicking something else).
+    - `min_slip_gain`: points the Kano valve must gain over a deadband (J = 0), on
+      the held-out or on the estimation samples, for the slip jump to count; below
+      it a valve nonlinearity is a deadband.
+    - `oscillation`: share of the linear model's residual power in one narrow band
+      (± one Fourier bin) above which the residual holds an external oscillation;
+      `min_period`, `max_fraction`: lines with periods outside
+      [`min_period`, `max_fraction` × record] samples are not oscillations.
+    """
+
+    min_gain: float = eqx.field(static=True, default=1.0)
+    min_gain_estimation: float = eqx.field(static=True, default=1.0)
+    min_band: float = eqx.field(static=True, default=0.05)
+    min_slip_gain: float = eqx.field(static=True, default=1.5)
+    oscillation: float = eqx.field(static=True, default=0.25)
+    min_period: float = eqx.field(static=True, default=3.0)
+    max_fraction: float = eqx.field(static=True, default=0.25)
+
+
+class Verdict(eqx.Module):
+    """Result of [`jaxstiction.verdict`][] (arrays; a leading axis when batched).
+
+    - `stiction_detected`; `cause`: an index into `CAUSES` (`none`, `stiction`,
+      `deadband`, `external_oscillation`).
+    - `evidence`: held-out fitness gain of the Kano valve over the linear valve
+      (points); `evidence_estimation`: the same on the estimation samples.
+    - `slip_evidence`, `slip_evidence_estimation`: the Kano valve's gain over a
+      deadband (J = 0).
+    - `band_fraction`: Kano's S as a fraction of the OP range.
+    - `oscillation`: share of the linear model's residual power in its strongest
+      narrow band, at period `period` (samples).
+    """
+
+    stiction_detected: Bool[Array, ""]
+    cause: Int[Array, ""]
+    evidence: Float[Array, ""]
+    evidence_estimation: Float[Array, ""]
+    slip_evidence: Float[Array, ""]
+    slip_evidence_estimation: Float[Array, ""]
+    band_fraction: Float[Array, ""]
+    oscillation: Float[Array, ""]
+    period: Float[Array, ""]
+
+
+def residual_line(r, weights, min_period: float, max_fraction: float):
+    """Share of the power of `r` (weighted samples only, mean removed) in its
+    strongest narrow band of periods in [`min_period`, `max_fraction` × count], and
+    that band's period (samples). A periodogram zero-padded 4 times; the band is ± one
+    natural Fourier bin (± 4 padded bins)."""
+    n = r.shape[0]
+    count = jnp.maximum(jnp.sum(weights), 1.0)
+    r = weights * (r - jnp.sum(weights * r) / count)
+    pad = 4
+    P = jnp.abs(jnp.fft.rfft(r, n=pad * n)) ** 2
+    f = jnp.arange(P.shape[0]) / (pad * n)  # cycles per sample
+    ok = (f >= 1.0 / (max_fraction * count)) & (f <= 1.0 / min_period)
+    total = jnp.maximum(jnp.sum(P[1:]), 1e-300)
+    band = jnp.convolve(P, jnp.ones((2 * pad + 1,), P.dtype), mode="same")
+    band = jnp.where(ok, band, 0.0)
+    k = jnp.argmax(band)
+    share = band[k] / total
+    return jnp.clip(share, 0.0, 1.0), 1.0 / jnp.maximum(f[k], 1e-12)
+
+
+DATA_CODES = ("too_short", "constant_op", "constant_pv", "nonfinite_data")
+
+
+def usable(result) -> Bool[Array, ""]:
+    """False for the data codes of [`jaxstiction.RESULTS`][] (too short, constant OP
+    or PV, NaN/inf): a solver code (a budgeted fit that did not converge) still
+    leaves fitted models to judge."""
+    bad = jnp.zeros(jnp.shape(result._value), bool)
+    for name in DATA_CODES:
+        bad = bad | (result == getattr(RESULTS, name))
+    return ~bad
+
+
+def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> Verdict:
+    """The stiction verdict and cause of one loop from its
+    [`jaxstiction.LoopFit`][] (see the module notes). Pure; vmap it with `estimate`."""
+    gain = fit.fitness_physical - fit.fitness_linear
+    gain_est = fit.fitness_physical_estimation - fit.fitness_linear_estimation
+    slip = fit.fitness_physical - fit.fitness_deadband
+    slip_est = fit.fitness_physical_estimation - fit.fitness_deadband_estimation
+    span = fit.op_range[1] - fit.op_range[0]
+    band = fit.S / jnp.where(span > 0, span, 1.0)
+    ok = usable(fit.result) & jnp.isfinite(fit.fitness_physical) & jnp.isfinite(fit.fitness_linear)
+    nonlinear = (ok & jnp.isfinite(gain) & (gain > settings.min_gain) & (gain_est > settings.min_gain_estimation)
+                 & (band >= settings.min_band))
+    slips = jnp.maximum(slip, slip_est) > settings.min_slip_gain
+    sticky = nonlinear & slips
+    deadband = nonlinear & ~slips
+    op = jnp.where(loop.mask > 0, loop.op, 0.0)
+    pv = jnp.where(loop.mask > 0, loop.pv, 0.0)
+    sim = simulate_scored(fit.linear, op, pv, loop.mask)[0]
+    share, period = residual_line(pv - sim, loop.mask, settings.min_period, settings.max_fraction)
+    external = ok & (share > settings.oscillation)
+    cause = jnp.where(sticky, 1, jnp.where(deadband, 2, jnp.where(external, 3, 0)))
+    return Verdict(
+        stiction_detected=sticky,
+        cause=cause.astype(jnp.int32),
+        evidence=gain,
+        evidence_estimation=gain_est,
+        slip_evidence=slip,
+        slip_evidence_estimation=slip_est,
+        band_fraction=band,
+        oscillation=share,
+        period=period,
+    )
