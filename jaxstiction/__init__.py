@@ -88,6 +88,14 @@ from ._relax import (
 )
 from ._report import fit as fit, FitReport as FitReport, report as report
 from ._scenarios import make_scenario as make_scenario, Scenario as Scenario, SCENARIOS as SCENARIOS
+from ._screen import (
+    rank as rank,
+    screen as screen,
+    screen_loops as screen_loops,
+    ScreenReport as ScreenReport,
+    ScreenSettings as ScreenSettings,
+    write_screen_outputs as write_screen_outputs,
+)
 from ._simulate import Experiment as Experiment, LoopRecord as LoopRecord, simulate_loop as simulate_loop
 from ._spline import (
     direction as direction,
@@ -98,6 +106,7 @@ from ._spline import (
     uniform_knots as uniform_knots,
     valve_curves as valve_curves,
 )
+from ._verdict import CAUSES as CAUSES, Verdict as Verdict, verdict as verdict, VerdictSettings as VerdictSettings
 
 
 try:

@@ -118,45 +118,26 @@ def cmd_fit(args):
 
 
 def cmd_screen(args):
-    import numpy as np
+    from ._screen import screen, write_screen_outputs
 
-    from ._checks import LoopDataError
-    from ._read import find_loop_files, loop_name, read_loop
-    from ._report import fit
-
-    files = find_loop_files(args.paths)
-    loops = []
-    for i, path in enumerate(files, 1):
-        _log(f"screen: [{i}/{len(files)}] {path.name}")
-        entry = {"name": path.stem, "file": str(path)}
-        try:
-            loop = read_loop(path, ts=args.ts)
-            r = fit(np.asarray(loop.op), np.asarray(loop.pv), ts=float(loop.ts), validate=args.validate,
-                    name=loop_name(path))
-            band = r.band_percent
-            entry.update(
-                status="ok",
-                fitness=r.fitness,
-                band_percent=band,
-                stiction_detected=bool(math.isfinite(band) and band > args.band_threshold),
-                model=r.model_kind,
-                S=r.S,
-                J=r.J,
-            )
-        except (LoopDataError, ValueError) as e:
-            entry.update(status=str(e), stiction_detected=False, band_percent=None, fitness=None)
-        loops.append(entry)
-    loops.sort(key=lambda e: -(e["band_percent"] or 0.0) if e["status"] == "ok" else 1e9)
-    lines = [f"{'loop':<12} {'status':<6} {'band %':>8} {'fitness %':>10} stiction"]
-    for e in loops:
+    progress = not args.json and sys.stderr.isatty() and not args.quiet
+    t0 = time.time()
+    rep = screen(args.paths, ts=args.ts, progress=progress, scheduler=args.scheduler, pictures=bool(args.out))
+    if args.out:
+        write_screen_outputs(rep, args.out)
+    lines = [f"{'loop':<16} {'status':<6} {'stiction':<8} {'cause':<21} {'band %':>7} {'evidence':>8} {'fitness %':>9}"]
+    for e in rep.loops:
         if e["status"] == "ok":
-            lines.append(
-                f"{e['name']:<12} {'ok':<6} {e['band_percent']:>8.2f} {e['fitness']:>10.2f} "
-                f"{'yes' if e['stiction_detected'] else 'no'}"
-            )
+            f = lambda v: "–" if v is None else f"{v:.2f}"  # noqa: E731
+            lines.append(f"{e['name']:<16} {'ok':<6} {'yes' if e['stiction_detected'] else 'no':<8} "
+                         f"{e['cause']:<21} {f(e['band_percent']):>7} {f(e['evidence']):>8} {f(e['fitness']):>9}")
         else:
-            lines.append(f"{e['name']:<12} error  {e['status']}")
-    _emit(args, {"loops": loops}, "\n".join(lines))
+            lines.append(f"{e['name']:<16} error  {e['status']}")
+    summary = rep.summary_line() + f" ({time.time() - t0:.0f} s)"
+    lines.append(summary)
+    if args.json:
+        _log(summary)
+    _emit(args, rep.to_json(), "\n".join(lines))
     return 0
 
 
@@ -223,12 +204,13 @@ def build_parser():
     f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
     f.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
     f.set_defaults(func=cmd_fit)
-    s = sub.add_parser("screen", parents=[common], help="fit many loops (files or folders)")
+    s = sub.add_parser("screen", parents=[common],
+                       help="screen loops (files, folders) for sticky valves, ranked; name other causes")
     s.add_argument("paths", nargs="+")
-    s.add_argument("--validate", type=float, default=1 / 3, metavar="FRACTION")
-    s.add_argument("--ts", type=float, default=None)
-    s.add_argument("--band-threshold", type=float, default=1.0,
-                   help="apparent band (%% of OP) above which stiction is reported")
+    s.add_argument("--ts", type=float, default=None, help="sampling time (s) for files without a t column")
+    s.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="run the chunks on a Dask cluster (e.g. tcp://host:8786); needs jaxstiction[dask]")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")

@@ -223,6 +223,17 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
     )
 
 
+def checked(op, pv, name: str, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
+    """`(op, pv)` as float64 arrays once they pass [`jaxstiction.check_loop`][] for
+    `estimate` with `settings`: the whole record for structure and NaN, its
+    estimation part for length and variation. Raises a one-line `LoopDataError`."""
+    op, pv = check_loop(op, pv, name=name, min_length=1, require_variation=False)
+    n = op.shape[0]
+    n_est = n - int(round(settings.validate * n))
+    check_loop(op[:n_est], pv[:n_est], name=name, min_length=min_length(settings))
+    return op, pv
+
+
 def fit(op, pv, *, ts: float = 1.0, validate: float = 1 / 3, name: str = "loop",
         settings: Settings | None = None) -> FitReport:
     """Identify the valve and the process of one loop from OP and PV (host API).
@@ -246,9 +257,6 @@ def fit(op, pv, *, ts: float = 1.0, validate: float = 1 / 3, name: str = "loop",
     if not 0.0 <= validate < 1.0:
         raise ValueError(f"`validate` must be in [0, 1), got {validate}")
     settings = dataclasses.replace(settings, validate=float(validate)) if settings.validate != validate else settings
-    op, pv = check_loop(op, pv, name=name, min_length=1, require_variation=False)
-    n = op.shape[0]
-    n_est = n - int(round(validate * n))
-    check_loop(op[:n_est], pv[:n_est], name=name, min_length=min_length(settings))
+    op, pv = checked(op, pv, name, settings)
     result = estimate(make_loop(op, pv, ts), settings)
     return report(result, op, pv, name=name, ts=ts, settings=settings)

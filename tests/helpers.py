@@ -1,5 +1,8 @@
 """Helpers shared by several test files."""
 
+import subprocess
+import sys
+
 import pytest
 
 from jaxstiction._checks import LoopDataError
@@ -13,3 +16,12 @@ def raises_one_line(match, func, *args, **kwargs):
     assert isinstance(info.value, ValueError)
     assert "\n" not in msg and "\r" not in msg
     return msg
+
+
+def run(*args, timeout=900):
+    return subprocess.run(
+        [sys.executable, "-m", "jaxstiction", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )

@@ -1,20 +1,10 @@
 """The command line: one-line errors with exit 2, and the JSON contract (the documented contract)."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-
-
-def run(*args, timeout=900):
-    return subprocess.run(
-        [sys.executable, "-m", "jaxstiction", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+from helpers import run
 
 
 def _csv(path, op, pv, header="t,OP,PV"):
@@ -69,21 +59,6 @@ def test_unreadable_and_missing_file(tmp_path):
     f.write_bytes(bytes(range(256)) * 4)
     _assert_one_line_error(run("fit", str(f), "--json"), "junk.csv")
     _assert_one_line_error(run("fit", str(tmp_path / "nope.csv")), "nope.csv")
-
-
-def test_screen_reports_per_loop_status(tmp_path):
-    op, pv = _good()
-    bad = op.copy()
-    bad[5] = np.nan
-    _csv(tmp_path / "bad.csv", bad, pv)
-    (tmp_path / "short.csv").write_text("OP,PV\n1,2\n2,3\n")
-    res = run("screen", str(tmp_path), "--json")
-    assert res.returncode == 0, res.stderr
-    out = json.loads(res.stdout)
-    status = {e["name"]: e["status"] for e in out["loops"]}
-    assert set(status) == {"bad", "short"}
-    assert "NaN" in status["bad"] and "at least" in status["short"]
-    assert all(e["stiction_detected"] is False for e in out["loops"])
 
 
 def test_fit_json_contract_on_chem23(isdb, tmp_path):

@@ -1,0 +1,382 @@
+r"""Fleet screening: many loops through one batched, jitted estimate and verdict.
+
+Loops are bucketed by length (a ladder of lengths ~√2 apart), padded and masked
+inside a bucket, and fitted in chunks of a fixed size by one compiled call of
+`vmap(estimate + verdict)`, so compilation is paid once per bucket, and never per
+loop. Nothing loops over loops in Python inside a chunk. A loop with bad data is
+stopped on the host with a one-line message before it reaches a chunk; a loop
+whose fit fails inside a chunk gets its own result code; a chunk that fails as a
+whole (an XLA error, memory) is re-run one loop at a time, so only the loop that
+caused it loses its result.
+
+Chunks run in this process, on every local JAX device in turn, or as tasks on a
+Dask cluster (`scheduler=`), each task one batched fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from ._estimate import estimate, RESULTS, Settings
+from ._loop import Loop, make_loop, stack
+from ._verdict import CAUSES, usable, verdict, VerdictSettings
+
+
+class ScreenSettings(eqx.Module):
+    """Settings of [`jaxstiction.screen`][].
+
+    - `estimate`: [`jaxstiction.Settings`][] of every fit; `verdict`:
+      [`jaxstiction.VerdictSettings`][].
+    - `chunk`: at most this many loops per batched call; `samples_per_call`: fewer
+      when `chunk` × bucket length would exceed it (memory grows with both).
+    """
+
+    estimate: Settings = Settings()
+    verdict: VerdictSettings = VerdictSettings()
+    chunk: int = eqx.field(static=True, default=4)
+    samples_per_call: int = eqx.field(static=True, default=8000)
+
+
+def bucket_length(n: int) -> int:
+    """The padded length of a bucket holding `n`-sample loops: the first of 500,
+    800, 1000, 1500, 2000, 2900, 4000, … (500 × √2^k rounded up to 100) that is
+    at least `n`."""
+    k = 0
+    while True:
+        b = int(math.ceil(500 * 2 ** (k / 2) / 100) * 100)
+        if b >= n:
+            return b
+        k += 1
+
+
+def chunk_size(length: int, settings: ScreenSettings) -> int:
+    """Loops per batched call for a bucket of `length` samples."""
+    return max(1, min(settings.chunk, settings.samples_per_call // max(length, 1)))
+
+
+@eqx.filter_jit
+def _verdicts(fits, loops: Loop, vset: VerdictSettings):
+    return eqx.filter_vmap(lambda f, lp: verdict(f, lp, vset))(fits, loops)
+
+
+def _batch(loops: Loop, settings: Settings, vset: VerdictSettings):
+    # `filter_vmap` of the jitted `estimate` (the documented batched contract): its
+    # compiled batch is shared with any other such call of the same shapes.
+    fits = eqx.filter_vmap(lambda lp: estimate(lp, settings))(loops)
+    return fits, _verdicts(fits, loops, vset)
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(f"{type(e).__name__}: {e}".split())[:300]
+
+
+def _r(v, nd=3):
+    v = float(v)
+    return round(v, nd) if math.isfinite(v) else None
+
+
+def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool) -> dict:
+    """One loop's screen entry (JSON-ready, plus a `figure` of NumPy arrays when
+    `pictures`) from its unbatched host-side fit and verdict."""
+    converged = bool(fit.result == RESULTS.successful)
+    ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
+    cause = CAUSES[int(ver.cause)]
+    rec = {
+        "name": name,
+        "file": file,
+        "status": "ok" if ok else RESULTS[fit.result],
+        "converged": converged,
+        "note": "" if converged else RESULTS[fit.result],
+        "samples": int(op.shape[0]),
+        "Ts": float(ts),
+        "stiction_detected": bool(ver.stiction_detected),
+        "cause": cause if ok else None,
+        "band_percent": _r(fit.band_percent),
+        "fitness": _r(fit.fitness),
+        "S": _r(fit.S),
+        "J": _r(fit.J),
+        "evidence": _r(ver.evidence),
+        "evidence_estimation": _r(ver.evidence_estimation),
+        "slip_evidence": _r(ver.slip_evidence),
+        "slip_evidence_estimation": _r(ver.slip_evidence_estimation),
+        "band_fraction": _r(ver.band_fraction, 4),
+        "fitness_kano": _r(fit.fitness_physical),
+        "fitness_linear": _r(fit.fitness_linear),
+        "fitness_deadband": _r(fit.fitness_deadband),
+        "oscillation": _r(ver.oscillation),
+        "period_samples": _r(ver.period, 1),
+        "model": ("spline", "physical")[int(fit.kind)],
+    }
+    if pictures and ok:
+        from ._report import report
+
+        jfit = jax.tree.map(jax.numpy.asarray, fit)
+        r = report(jfit, op, pv, name=name, ts=ts, settings=settings)
+        rec["figure"] = dict(op=r.op, pv=r.pv, pv_sim=r.pv_sim, valve_u=r.valve_u, valve_up=r.valve_up,
+                             valve_down=r.valve_down, n_estimation=r.n_estimation, kind=r.model_kind)
+    return rec
+
+
+def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSettings = ScreenSettings(),
+              *, pictures: bool = False, enable_x64: bool = False, device=None) -> list[dict]:
+    """Fit one chunk of loops in one batched call and return their entries.
+
+    `items`: `(name, file, op, pv, ts)` tuples (NumPy arrays, already checked),
+    padded to `length` samples and, with repeats of the first loop that are then
+    dropped, to `size` loops, so every chunk of a bucket has one shape. A top-level
+    function of plain arguments, so a Dask worker can run it; `enable_x64` turns on
+    float64 in that worker (the application's choice, as the CLI's).
+    """
+    if enable_x64:
+        jax.config.update("jax_enable_x64", True)
+    items = list(items)
+    loops = [make_loop(op, pv, ts) for (_, _, op, pv, ts) in items]
+    loops += [loops[0]] * (size - len(loops))
+    try:
+        batch = stack(loops, length)
+        if device is not None:
+            batch = jax.device_put(batch, device)
+        fits, vers = _batch(batch, settings.estimate, settings.verdict)
+        fits, vers = jax.tree.map(np.asarray, (fits, vers))
+    except Exception as e:  # noqa: BLE001 - an XLA failure must cost only its own loops
+        if len(items) > 1:
+            out = []
+            for it in items:
+                out += run_chunk([it], length, 1, settings, pictures=pictures)
+            return out
+        name, file, op, pv, ts = items[0]
+        return [_error(name, file, f"fit failed: {_one_line(e)}", op.shape[0], ts)]
+    out = []
+    for i, (name, file, op, pv, ts) in enumerate(items):
+        fit, ver = jax.tree.map(lambda x: np.asarray(x[i]), (fits, vers))
+        try:
+            out.append(_record(name, file, op, pv, ts, fit, ver, settings.estimate, pictures))
+        except Exception as e:  # noqa: BLE001
+            out.append(_error(name, file, f"report failed: {_one_line(e)}", op.shape[0], ts))
+    return out
+
+
+def _error(name, file, message, samples=None, ts=None) -> dict:
+    return {"name": name, "file": file, "status": message, "samples": samples, "Ts": ts,
+            "stiction_detected": False, "cause": None, "band_percent": None, "fitness": None}
+
+
+def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings()):
+    """Read and check every loop under `paths` (files and folders; a `.mat` file may
+    hold several loops). Returns `(items, errors)`: `(name, file, op, pv, ts)` tuples
+    ready to fit, and error entries (one line each) for the loops that cannot be."""
+    from ._read import find_loop_files, loop_name, read_loop
+    from ._read_mat import list_mat_loops
+    from ._report import checked
+
+    items, errors = [], []
+    for path in find_loop_files(paths):
+        names: list[str | None] = [None]
+        if path.suffix.lower() == ".mat":
+            try:
+                names = list_mat_loops(path) or [None]
+            except Exception as e:  # noqa: BLE001 - a bad file is that file's error
+                errors.append(_error(path.stem, str(path), _message(e)))
+                continue
+        for sub in names:
+            name = loop_name(path) if not sub else f"{path.stem}:{sub}"
+            try:
+                loop = read_loop(path, ts=ts, name=sub)
+                op, pv = checked(np.asarray(loop.op), np.asarray(loop.pv), name, settings.estimate)
+                items.append((name, str(path), op, pv, float(loop.ts)))
+            except Exception as e:  # noqa: BLE001
+                errors.append(_error(name, str(path), _message(e)))
+    return items, errors
+
+
+def _message(e: BaseException) -> str:
+    from ._checks import LoopDataError
+
+    if isinstance(e, (LoopDataError, ValueError, OSError)):
+        return " ".join(str(e).split())[:300]
+    return f"unreadable: {_one_line(e)}"
+
+
+def _chunks(items, settings: ScreenSettings):
+    """`(length, size, members)` for every chunk: bucketed by length, in order."""
+    buckets: dict[int, list] = {}
+    for it in items:
+        buckets.setdefault(bucket_length(it[2].shape[0]), []).append(it)
+    for length in sorted(buckets):
+        size = chunk_size(length, settings)
+        members = buckets[length]
+        for i in range(0, len(members), size):
+            yield length, size, members[i : i + size]
+
+
+def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSettings = ScreenSettings(), *,
+                 progress: Callable[[int], Any] | None = None, scheduler: Any = None,
+                 pictures: bool = False) -> list[dict]:
+    """Screen loops already in memory. `loops`: a mapping name → [`jaxstiction.Loop`][]
+    (real samples only), or `(name, file, op, pv, ts)` items as from `read_items`.
+    Returns one entry per loop, in input order (see [`jaxstiction.screen`][])."""
+    if isinstance(loops, Mapping):
+        items, errors = [], []
+        for name, lp in loops.items():
+            try:
+                op, pv = _checked_loop(lp, name, settings)
+                items.append((name, None, op, pv, float(np.asarray(lp.ts))))
+            except ValueError as e:
+                errors.append(_error(name, None, _message(e)))
+    else:
+        items, errors = list(loops), []
+    order = {it[0]: i for i, it in enumerate(items)}
+    results = errors + _run(items, settings, progress, scheduler, pictures)
+    return sorted(results, key=lambda r: order.get(r["name"], -1))
+
+
+def _checked_loop(lp: Loop, name, settings):
+    from ._report import checked
+
+    m = np.asarray(lp.mask) > 0
+    return checked(np.asarray(lp.op)[m], np.asarray(lp.pv)[m], name, settings.estimate)
+
+
+def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
+    chunks = list(_chunks(items, settings))
+    if scheduler is not None:
+        return _run_dask(chunks, settings, progress, scheduler, pictures)
+    devices = jax.local_devices()
+    out = []
+    for k, (length, size, members) in enumerate(chunks):
+        dev = devices[k % len(devices)] if len(devices) > 1 else None
+        out += run_chunk(members, length, size, settings, pictures=pictures, device=dev)
+        if progress is not None:
+            progress(len(members))
+    return out
+
+
+def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
+    try:
+        from dask.distributed import as_completed, Client
+    except ImportError as e:  # pragma: no cover - depends on the install
+        raise ValueError("--scheduler needs dask.distributed: pip install 'jaxstiction[dask]'") from e
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    x64 = bool(jax.config.jax_enable_x64)
+    try:
+        futures = {client.submit(run_chunk, members, length, size, settings, pictures=pictures, enable_x64=x64,
+                                 pure=False): len(members) for length, size, members in chunks}
+        out = []
+        for fut in as_completed(futures):
+            try:
+                out += fut.result()
+            except Exception as e:  # noqa: BLE001 - a lost worker costs only its chunk
+                i = list(futures).index(fut)
+                _, _, members = chunks[i]
+                out += [_error(m[0], m[1], f"task failed: {_one_line(e)}", m[2].shape[0], m[4]) for m in members]
+            if progress is not None:
+                progress(futures[fut])
+        return out
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+def rank(results: Iterable[dict]) -> list[dict]:
+    """Loops ranked by stiction evidence and severity: sticky loops first (largest
+    held-out gain of the Kano valve over a linear one, then widest band), then the
+    other fitted loops by the same evidence, then the loops that failed."""
+
+    def key(r):
+        ok = r["status"] == "ok"
+        ev = r.get("evidence")
+        return (not ok, not r["stiction_detected"], -(ev if ev is not None else -1e9),
+                -(r.get("band_percent") or 0.0))
+
+    return sorted(results, key=key)
+
+
+@dataclasses.dataclass(frozen=True)
+class ScreenReport:
+    """Result of [`jaxstiction.screen`][]: `loops`, ranked (see `rank`), and counts."""
+
+    loops: list
+
+    @property
+    def counts(self) -> dict:
+        ok = sum(r["status"] == "ok" for r in self.loops)
+        return {"loops": len(self.loops), "ok": ok, "errors": len(self.loops) - ok,
+                "sticky": sum(bool(r["stiction_detected"]) for r in self.loops)}
+
+    def summary_line(self) -> str:
+        c = self.counts
+        return (f"screen: {c['loops']} loops: {c['ok']} ok, {c['errors']} error{'s' * (c['errors'] != 1)}, "
+                f"{c['sticky']} sticky")
+
+    def to_json(self) -> dict:
+        loops = [{k: v for k, v in r.items() if k != "figure"} for r in self.loops]
+        return {"loops": loops, "summary": self.counts}
+
+
+def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
+           ts: float | None = None, progress: bool = False, scheduler: Any = None,
+           pictures: bool = False) -> ScreenReport:
+    """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
+    for sticky valves, and name the cause of the others.
+
+    Each loop gets [`jaxstiction.estimate`][] (batched with the other loops of its
+    length bucket) and [`jaxstiction.verdict`][]: `stiction_detected` when Kano's
+    valve beats a linear valve on held-out data, and a `cause` (`stiction`,
+    `deadband`, `external_oscillation`, `none`). A loop that cannot be read or fitted
+    gets `status` with a one-line error; the others are unaffected.
+
+    **Arguments:**
+
+    - `settings`: [`jaxstiction.ScreenSettings`][].
+    - `ts`: sampling time for files without a `t` column.
+    - `progress`: show a progress bar (tqdm) on stderr.
+    - `scheduler`: a Dask scheduler address (or a `dask.distributed.Client`): each
+      chunk becomes one task on the cluster.
+    - `pictures`: keep the arrays each loop's picture needs (`figure`).
+
+    **Returns:** a [`jaxstiction.ScreenReport`][].
+
+    **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
+    """
+    items, errors = read_items(paths, ts=ts, settings=settings)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(items), unit="loop", desc="screen", file=__import__("sys").stderr)
+    try:
+        results = _run(items, settings, bar.update if bar else None, scheduler, pictures)
+    finally:
+        if bar is not None:
+            bar.close()
+    return ScreenReport(loops=rank(errors + results))
+
+
+def write_screen_outputs(report: ScreenReport, out_dir: str | os.PathLike) -> list[Path]:
+    """Write `summary.csv`, one picture per loop (`loops/NAME.png`) and a static
+    `report.html` (ranked loops with verdict, band and thumbnails) into `out_dir`."""
+    from ._plots import write_screen_loop_figure
+    from ._screen_html import write_html, write_summary_csv
+
+    out = Path(out_dir)
+    (out / "loops").mkdir(parents=True, exist_ok=True)
+    written = [write_summary_csv(report.loops, out / "summary.csv")]
+    for r in report.loops:
+        if "figure" in r:
+            r["picture"] = f"loops/{_safe(r['name'])}.png"
+            written.append(write_screen_loop_figure(r, out / r["picture"]))
+    written.append(write_html(report, out / "report.html"))
+    return written
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)

@@ -1,0 +1,160 @@
+"""Fleet screening: bucketing, per-loop errors for corrupt files, the verdict's
+spectral test, ranking and report files, the CLI contract, and a real Dask
+LocalCluster giving the single-process results."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from helpers import run
+from test_estimate import _loop, SMALL
+
+import jaxstiction as js
+from jaxstiction._screen import bucket_length, chunk_size
+from jaxstiction._verdict import residual_line
+
+
+SCREEN = js.ScreenSettings(estimate=SMALL, chunk=3)
+
+
+def _csv(path, op, pv):
+    with open(path, "w") as f:
+        f.write("OP,PV\n")
+        for o, p in zip(op, pv):
+            f.write(f"{o},{p}\n")
+
+
+def _corrupt(folder, good):
+    """The ten kinds of bad file of a plant historian export."""
+    op, pv = np.asarray(good.op), np.asarray(good.pv)
+    n = op.shape[0]
+    nan = op.copy()
+    nan[10] = np.nan
+    _csv(folder / "nan.csv", nan, pv)
+    inf = pv.copy()
+    inf[20] = np.inf
+    _csv(folder / "inf.csv", op, inf)
+    _csv(folder / "constant_op.csv", np.full(n, 42.0), pv)
+    _csv(folder / "constant_pv.csv", op, np.full(n, 3.0))
+    _csv(folder / "too_short.csv", op[:40], pv[:40])
+    (folder / "no_pv.csv").write_text("OP,XX\n" + "".join(f"{o},{o}\n" for o in op))
+    (folder / "empty.csv").write_text("")
+    (folder / "garbage.csv").write_bytes(bytes(range(256)) * 8)
+    (folder / "text_cells.csv").write_text("OP,PV\n" + "".join(f"{o},high\n" for o in op[:200]))
+    (folder / "header_only.csv").write_text("t,OP,PV\n")
+    return 10
+
+
+def test_bucket_ladder():
+    assert [bucket_length(n) for n in (1, 500, 501, 1400, 1500, 1625, 18000)] == [500, 500, 800, 1500, 1500,
+                                                                                      2000, 22700]
+    assert chunk_size(1500, js.ScreenSettings()) == 4
+    assert chunk_size(22700, js.ScreenSettings()) == 1
+
+
+def test_residual_line_finds_a_sinusoid():
+    rng = np.random.default_rng(0)
+    t = np.arange(1500)
+    w = np.ones(1500)
+    share_noise, _ = residual_line(rng.standard_normal(1500), w, 3.0, 0.25)
+    share, period = residual_line(3 * np.sin(2 * np.pi * t / 37.0) + rng.standard_normal(1500), w, 3.0, 0.25)
+    assert float(share_noise) < 0.05
+    assert float(share) > 0.6
+    assert abs(float(period) - 37.0) < 1.0
+    # padding (mask off) changes nothing
+    x = np.concatenate([3 * np.sin(2 * np.pi * t / 37.0), np.zeros(300)])
+    s1, p1 = residual_line(x[:1500], w, 3.0, 0.25)
+    s2, p2 = residual_line(x, np.concatenate([w, np.zeros(300)]), 3.0, 0.25)
+    assert abs(float(s1) - float(s2)) < 0.05 and abs(float(p1) - float(p2)) < 1.0
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("fleet")
+    good = [_loop(s, n) for s, n in ((11, 700), (12, 760), (13, 780))]
+    for i, lp in enumerate(good):
+        _csv(folder / f"good{i}.csv", np.asarray(lp.op), np.asarray(lp.pv))
+    bad = _corrupt(folder, good[0])
+    return folder, good, bad
+
+
+@pytest.fixture(scope="module")
+def screened(fleet):
+    folder, _, _ = fleet
+    return js.screen(folder, SCREEN)
+
+
+def test_corrupt_files_cost_only_their_own_results(fleet, screened):
+    folder, good, bad = fleet
+    rep = screened
+    assert rep.counts == {"loops": len(good) + bad, "ok": len(good), "errors": bad,
+                          "sticky": sum(r["stiction_detected"] for r in rep.loops)}
+    for r in rep.loops:
+        assert "\n" not in r["status"]
+        if r["name"].startswith("good"):
+            assert r["status"] == "ok" and r["cause"] in js.CAUSES
+            assert np.isfinite(r["fitness"]) and np.isfinite(r["band_percent"])
+        else:
+            assert r["status"] != "ok" and r["stiction_detected"] is False
+    status = {r["name"]: r["status"] for r in rep.loops}
+    assert "NaN" in status["nan"] and "inf" in status["inf"]
+    assert "constant" in status["constant_op"] and "constant" in status["constant_pv"]
+    assert "at least" in status["too_short"]
+    assert "PV" in status["no_pv"]
+    # ranking: fitted loops first, errors last
+    oks = [r["status"] == "ok" for r in rep.loops]
+    assert oks == sorted(oks, reverse=True)
+    assert rep.summary_line().startswith(f"screen: {len(good) + bad} loops: {len(good)} ok, {bad} errors")
+
+
+def test_screen_entries_equal_single_fits(fleet, screened):
+    """The batched, bucketed screen gives, loop by loop, what one `estimate` gives."""
+    _, good, _ = fleet
+    by_name = {r["name"]: r for r in screened.loops}
+    f = js.estimate(good[1], SMALL)
+    r = by_name["good1"]
+    assert r["fitness"] == pytest.approx(float(f.fitness), abs=1e-3)
+    assert r["S"] == pytest.approx(float(f.S), abs=1e-3)
+    v = js.verdict(f, good[1], SCREEN.verdict)
+    assert r["stiction_detected"] == bool(v.stiction_detected)
+    assert r["evidence"] == pytest.approx(float(v.evidence), abs=1e-3)
+
+
+def test_report_files(screened, tmp_path):
+    rep = js.ScreenReport(loops=[dict(r) for r in screened.loops])
+    paths = js.write_screen_outputs(rep, tmp_path)
+    assert (tmp_path / "report.html").exists() and (tmp_path / "summary.csv").exists()
+    with open(tmp_path / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(rep.loops)
+    assert [r["name"] for r in rows] == [r["name"] for r in rep.loops]
+    page = (tmp_path / "report.html").read_text()
+    for r in rep.loops:
+        assert r["name"] in page
+    assert "http" not in page  # no downloads: opens offline
+    assert all(p.exists() for p in paths)
+
+
+def test_cli_screen_all_corrupt(fleet, tmp_path):
+    """The CLI on a folder of corrupt files: exit 0, one JSON object, a per-loop error
+    and a summary line counting them."""
+    folder, good, _ = fleet
+    bad_only = tmp_path / "bad"
+    bad_only.mkdir()
+    n = _corrupt(bad_only, good[0])
+    res = run("screen", str(bad_only), "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert out["summary"] == {"loops": n, "ok": 0, "errors": n, "sticky": 0}
+    assert len(out["loops"]) == n and all(e["status"] != "ok" for e in out["loops"])
+    assert f"{n} loops: 0 ok, {n} errors, 0 sticky" in res.stderr
+
+
+def test_dask_local_cluster_matches_single_process(fleet, screened):
+    distributed = pytest.importorskip("dask.distributed")
+    folder, _, _ = fleet
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        rep = js.screen(folder, SCREEN, scheduler=client)
+    assert rep.to_json() == screened.to_json()
