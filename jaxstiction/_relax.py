@@ -104,6 +104,15 @@ def _normalise(a, b, beta, cov):
     return ARXHammerstein(a=a, b=b * s * sign, beta=beta / (s * sign))
 
 
+def _linear_part(beta, prob: RelaxProblem, ridge=1e-14):
+    r"""Step (16): unknowns `(a, b)` for fixed `beta`: $Z T_b(\beta) = [-Y, \Phi_k \beta]$."""
+    n, p = prob.order, prob.num_params
+    Ry = prob.R[:, :n]
+    Rphi = prob.R[:, n:].reshape(-1, n, p)
+    th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,j->ik", Rphi, beta)], axis=1), prob.r, ridge)
+    return th[:n], th[n:]
+
+
 def relax_sweep(model: ARXHammerstein, prob: RelaxProblem, ridge=1e-14):
     """One relaxation sweep: step (15), then step (16), then gain normalisation."""
     n, p = prob.order, prob.num_params
@@ -111,10 +120,8 @@ def relax_sweep(model: ARXHammerstein, prob: RelaxProblem, ridge=1e-14):
     Rphi = prob.R[:, n:].reshape(-1, n, p)  # columns indexed by (lag k, basis j)
     # (15): unknowns [a, beta] for fixed b: Z T_a(b) = [-Y, sum_k b_k Phi_k].
     th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,k->ij", Rphi, model.b)], axis=1), prob.r, ridge)
-    a, beta = th[:n], th[n:]
-    # (16): unknowns [a, b] for fixed beta: Z T_b(beta) = [-Y, Phi_k beta].
-    th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,j->ik", Rphi, beta)], axis=1), prob.r, ridge)
-    a, b = th[:n], th[n:]
+    beta = th[n:]
+    a, b = _linear_part(beta, prob, ridge)  # (16)
     return _normalise(a, b, beta, prob.cov)
 
 
@@ -134,16 +141,6 @@ def relax_init(prob: RelaxProblem) -> ARXHammerstein:
     dtype = prob.R.dtype
     b0 = jnp.zeros((n,), dtype).at[0].set(1.0)
     return ARXHammerstein(a=jnp.zeros((n,), dtype), b=b0, beta=jnp.zeros((p,), dtype))
-
-
-def _linear_part(beta, prob: RelaxProblem, ridge=1e-14):
-    """Step (16): `(a, b)` for fixed `beta`, its residual and its matrix."""
-    n, p = prob.order, prob.num_params
-    Ry = prob.R[:, :n]
-    Rphi = prob.R[:, n:].reshape(-1, n, p)
-    X = jnp.concatenate([-Ry, jnp.einsum("ikj,j->ik", Rphi, beta)], axis=1)
-    th = _lstsq(X, prob.r, ridge)
-    return th[:n], th[n:], prob.r - X @ th, X
 
 
 class _Reduced(eqx.Module):
@@ -269,7 +266,7 @@ def relax(
         pr = jax.lax.stop_gradient(prob)
         red = _Reduced.of(pr)
         beta = jax.lax.fori_loop(0, projection_steps, lambda _, bt: _varpro_step(bt, red), beta)
-        a, b, _, _ = _linear_part(beta, pr)
+        a, b = _linear_part(beta, pr)
         start = _normalise(a, b, beta, pr.cov)
         better = relax_loss(start, pr) <= relax_loss(jax.lax.stop_gradient(init), pr)
         init = jax.tree.map(lambda s_, i: jnp.where(better, s_, i), start, init)
