@@ -269,17 +269,16 @@ def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
     x64 = bool(jax.config.jax_enable_x64)
     try:
         futures = {client.submit(run_chunk, members, length, size, settings, pictures=pictures, enable_x64=x64,
-                                 pure=False): len(members) for length, size, members in chunks}
+                                 pure=False): members for length, size, members in chunks}
         out = []
         for fut in as_completed(futures):
+            members = futures[fut]
             try:
                 out += fut.result()
             except Exception as e:  # noqa: BLE001 - a lost worker costs only its chunk
-                i = list(futures).index(fut)
-                _, _, members = chunks[i]
                 out += [_error(m[0], m[1], f"task failed: {_one_line(e)}", m[2].shape[0], m[4]) for m in members]
             if progress is not None:
-                progress(futures[fut])
+                progress(len(members))
         return out
     finally:
         if client is not scheduler:
