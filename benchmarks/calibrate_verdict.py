@@ -33,6 +33,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
+from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 from jaxstiction import Deadband, Experiment, Kano, make_loop, simulate_loop, Sinusoid  # noqa: E402
 from jaxstiction._scenarios import nominal_model  # noqa: E402
@@ -41,13 +42,6 @@ from jaxstiction._screen import screen_loops  # noqa: E402
 
 KINDS = ("stiction", "none", "tight", "external", "deadband")
 N = 1500
-
-
-def seeds_arg(text):
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(v) for v in text.split(",")]
 
 
 def make(kind, seed):

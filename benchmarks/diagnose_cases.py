@@ -24,6 +24,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+
 from jaxstiction import diagnose, make_scenario  # noqa: E402
 
 
@@ -31,13 +33,6 @@ EXPECTED = {"P0": "none", "P1": "stiction", "P2": "dead_time", "P3": "valve_char
             "P5": "external_oscillation", "P6": "deadband", "P7": "quantization", "P8": "drift",
             "P9": "actuator_lag", "P10": "stiction"}
 GAIN_EXPECTED = {"P1", "P2", "P3", "P4", "P5", "P6", "P9", "P10"}  # where a deterministic block can help
-
-
-def seeds_arg(text):
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(v) for v in text.split(",")]
 
 
 def right(case, d):

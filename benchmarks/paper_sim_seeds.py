@@ -23,14 +23,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+
 from jaxstiction._demo import paper_sim_case  # noqa: E402
-
-
-def seeds_arg(text):
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(v) for v in text.split(",")]
 
 
 def main():
