@@ -11,7 +11,7 @@ import pytest
 import jaxstiction as js
 from jaxstiction._filters import freq_response
 from jaxstiction._hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
-from jaxstiction._physical import fit_physical
+from jaxstiction._physical import _arx_design, arx_loss, fit_physical, valve_from
 from jaxstiction._reduce import LowOrder, reduce_model, welch
 from jaxstiction._scenarios import nominal_model, paper_experiment
 
@@ -89,6 +89,27 @@ def test_physical_fit_finds_s_and_j(sticky):
     assert abs(float(fit.S) - 10.0) < 0.6
     assert abs(float(fit.J) - 2.0) < 0.8
     assert float(fit.S_interval[0]) <= float(fit.S) <= float(fit.S_interval[1])
+
+
+def test_arx_criterion_equals_numpy_lstsq(sticky):
+    """The grid's ARX criterion, read off a Gram-matrix Cholesky factor, equals the
+    residual of NumPy's `lstsq` (SVD) on the same weighted regression to 1e-9
+    relative, over (S, J) points from no stiction to a band of a quarter of the OP range,
+    and every delay: the normal matrix is safe here."""
+    op, y, u = sticky
+    w = jnp.ones_like(y)
+    lo, hi = op.min(), op.max()
+    for s, j in [(0.0, 0.0), (3.0, 1.0), (10.0, 2.0), (20.0, 20.0), (25.0, 5.0)]:
+        x, wb = valve_from(op, s, j, w, 10, -1, 3)
+        x = js.scale_input(x, lo, hi)
+        assert float(jnp.sum(wb)) > 100
+        for d in (1, 2, 3):
+            got = float(arx_loss(x, y, wb, 4, d))
+            X = np.asarray(_arx_design(x, y, 4, d))
+            m = np.asarray(wb) * (np.arange(y.shape[0]) >= 7)
+            th = np.linalg.lstsq(X * m[:, None], np.asarray(y) * m, rcond=None)[0]
+            want = np.sum((m * (np.asarray(y) - X @ th)) ** 2) / m.sum()
+            np.testing.assert_allclose(got, want, rtol=1e-9)
 
 
 def test_grad_through_relaxation_reduction_and_polish(sticky):
