@@ -339,19 +339,22 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
 
     nb = max(nb, pset.max_delay + pset.order)
     na = max(na, pset.order + 1)
-    lin_fits, v_lin = jax.vmap(lambda d: oe_at(x_lin, w_est, d))(jnp.arange(1, pset.max_delay + 1))
-    bl = jnp.argmin(v_lin)
-    m_lin = as_model(jax.tree.map(lambda t: t[bl], lin_fits), v_lin[bl], none)
     S_db = jnp.where(jnp.isfinite(S), S, 0.0) * jnp.asarray(DEADBAND_WIDTHS, dtype)
-    delay_db = jnp.asarray(delay_ph if settings.use_physical else bl + 1)
-
-    def deadband_at(width):
-        x, wb = valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count)
-        return oe_at(scale_input(x, lo, hi), wb, delay_db)
-
-    db_fits, v_db = jax.vmap(deadband_at)(S_db)
-    bd = jnp.argmin(v_db)
-    m_db = as_model(jax.tree.map(lambda t: t[bd], db_fits), v_db[bd], Kano(S_db[bd], jnp.zeros((), dtype)))
+    delay_db = jnp.asarray(delay_ph if settings.use_physical else 1)
+    x_db, wb_db = jax.vmap(lambda width: valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count))(S_db)
+    # one vmapped Box-Jenkins fit for both nulls: the linear valve at every delay,
+    # then the deadband at each width (at the physical fit's delay)
+    L, B = pset.max_delay, len(DEADBAND_WIDTHS)
+    xs = jnp.concatenate([jnp.broadcast_to(x_lin, (L, N)), scale_input(x_db, lo, hi)])
+    wbs = jnp.concatenate([jnp.broadcast_to(w_est, (L, N)), wb_db])
+    ds = jnp.concatenate([jnp.arange(1, L + 1), jnp.full((B,), delay_db)])
+    null_fits, v_null = jax.vmap(oe_at)(xs, wbs, ds)
+    bl = jnp.argmin(v_null[:L])
+    m_lin = as_model(jax.tree.map(lambda t: t[bl], null_fits), v_null[bl], none)
+    bd = jnp.argmin(v_null[L:])
+    m_db = as_model(jax.tree.map(lambda t: t[L + bd], null_fits), v_null[L + bd], Kano(S_db[bd], jnp.zeros((), dtype)))
+    if not settings.use_physical:
+        m_db = m_lin  # without a fitted S, every width is 0: a deadband of width 0 is the linear valve
     m_spline = _pad_model(m_spline, nb, na)
     m_paper = _pad_model(m_paper, nb, na)
     m_phys = _pad_model(m_phys, nb, na)
@@ -362,23 +365,20 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     physical = foe_ph < foe_s
     model = jax.tree.map(lambda p, s: jnp.where(physical, p, s), m_phys, m_spline)
 
-    sset_score = settings.score
-
-    def in_turn(m, w, after):
-        # one score after the other (see the barrier above)
-        m, w, _ = jax.lax.optimization_barrier((m, w, after))
-        return score(m, op, pv, w, sset_score)
-
-    fit_val = in_turn(model, w_val, foe_ph)
-    fit_est = in_turn(model, w_est, fit_val)
-    fit_paper = in_turn(m_paper, w_val, fit_est)
-    fit_spline = in_turn(m_spline, w_val, fit_paper)
-    fit_phys = in_turn(m_phys, w_val, fit_spline) if settings.use_physical else jnp.asarray(jnp.nan, dtype)
-    fit_lin = in_turn(m_lin, w_val, fit_phys)
-    fit_phys_est = in_turn(m_phys, w_est, fit_lin) if settings.use_physical else jnp.asarray(jnp.nan, dtype)
-    fit_lin_est = in_turn(m_lin, w_est, fit_phys_est)
-    fit_db = in_turn(m_db, w_val, fit_lin_est)
-    fit_db_est = in_turn(m_db, w_est, fit_db)
+    # Every score (model x scored part), one after the other in one `lax.map`: one
+    # trace instead of ten, and the memory of one simulation at a time.
+    models = (model, m_paper, m_spline, m_phys, m_lin, m_db)
+    pairs = ((0, w_val), (0, w_est), (1, w_val), (2, w_val), (3, w_val), (4, w_val), (3, w_est), (4, w_est),
+             (5, w_val), (5, w_est))
+    stacked = jax.tree.map(lambda *t: jnp.stack(t), *(models[i] for i, _ in pairs))
+    ws = jnp.stack([w for _, w in pairs])
+    stacked, ws, _ = jax.lax.optimization_barrier((stacked, ws, foe_ph))
+    scores = jax.lax.map(lambda mw: score(mw[0], op, pv, mw[1], settings.score), (stacked, ws))
+    nan = jnp.asarray(jnp.nan, dtype)
+    fit_val, fit_est, fit_paper, fit_spline, fit_phys, fit_lin, fit_phys_est, fit_lin_est, fit_db, fit_db_est = (
+        scores[i] for i in range(len(pairs)))
+    if not settings.use_physical:
+        fit_phys = fit_phys_est = nan
 
     band_spline = spline_band(pick.model.beta, knots[ki], kmasks[ki], lo, hi)
     band = jnp.where(physical, S, band_spline)

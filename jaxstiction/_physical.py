@@ -278,20 +278,23 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     s0, j0, dJk = S2[pick], J2[pick], dJ[order]
     rl = jnp.linspace(-1.0, 1.0, settings.line, dtype=dtype)
     c0 = jnp.full((settings.polish_starts,), default)
-    for _ in range(settings.rounds):
-        for axis in (0, 1):
-            if axis == 0:
-                Sl = jnp.clip(s0[:, None] + dS * rl[None, :], 0.0, None)
-                Jl = jnp.minimum(jnp.broadcast_to(j0[:, None], Sl.shape), Sl)
-            else:
-                Jl = jnp.clip(j0[:, None] + dJk[:, None] * rl[None, :], 0.0, None)
-                Sl = jnp.broadcast_to(s0[:, None], Jl.shape)
-                Jl = jnp.minimum(Jl, Sl)
-            ll, _, cl = search(Sl.ravel(), Jl.ravel(), delay, starts_all)
-            a = jnp.argmin(ll.reshape(Sl.shape), axis=1)
-            c0 = jnp.take_along_axis(cl.reshape(Sl.shape), a[:, None], axis=1)[:, 0]
-            s0 = jnp.take_along_axis(Sl, a[:, None], axis=1)[:, 0]
-            j0 = jnp.take_along_axis(Jl, a[:, None], axis=1)[:, 0]
+
+    def line_search(i, carry):
+        # even i: a line in S (J clipped to S); odd i: a line in J. One traced body
+        # for all `2 * rounds` searches.
+        s0, j0, c0 = carry
+        along_S = i % 2 == 0
+        Sl = jnp.where(along_S, jnp.clip(s0[:, None] + dS * rl[None, :], 0.0, None),
+                       jnp.broadcast_to(s0[:, None], (s0.shape[0], rl.shape[0])))
+        Jl = jnp.where(along_S, jnp.broadcast_to(j0[:, None], Sl.shape),
+                       jnp.clip(j0[:, None] + dJk[:, None] * rl[None, :], 0.0, None))
+        Jl = jnp.minimum(Jl, Sl)
+        ll, _, cl = search(Sl.ravel(), Jl.ravel(), delay, starts_all)
+        a = jnp.argmin(ll.reshape(Sl.shape), axis=1)[:, None]
+        pick = lambda g: jnp.take_along_axis(g, a, axis=1)[:, 0]  # noqa: E731
+        return pick(Sl), pick(Jl), pick(cl.reshape(Sl.shape))
+
+    s0, j0, c0 = jax.lax.fori_loop(0, 2 * settings.rounds, line_search, (s0, j0, c0))
     # Stage 3: output-error (Box-Jenkins) fits on a small grid around each refined
     # point; the best decides, and its grid gives the profile likelihood of (S, J).
     hs = dS / (settings.refine - 1)
