@@ -248,8 +248,37 @@ def _compilation_cache():
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
+# jaxlib releases on which `--xla_cpu_use_fusion_emitters=false` was measured (an
+# unknown flag in XLA_FLAGS aborts XLA, so it is never passed to an untested one).
+_LEAN_COMPILER_VERIFIED = ("0.10.",)
+
+
+def _lean_compiler():
+    """Compile with XLA's older CPU fusion code generator.
+
+    Measured on a 2-core CPU with jaxlib 0.10.2: compiling `estimate` for a
+    1500-sample loop peaks at 1.09 GB of memory instead of 2.57 GB and takes 15 s
+    instead of 21 s; the compiled programs run as fast (the physical search a little
+    faster). It must be set before JAX creates its CPU backend, so the command line
+    sets it first thing; a flag already in `XLA_FLAGS` wins, and
+    `JAXSTICTION_LEAN_COMPILER=off` leaves XLA alone. API users can set
+    `XLA_FLAGS=--xla_cpu_use_fusion_emitters=false` themselves."""
+    import os
+
+    import jaxlib
+
+    if os.environ.get("JAXSTICTION_LEAN_COMPILER", "").lower() in ("off", "0", "no", "false"):
+        return
+    if not jaxlib.__version__.startswith(_LEAN_COMPILER_VERIFIED):
+        return
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_use_fusion_emitters" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_cpu_use_fusion_emitters=false".strip()
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    _lean_compiler()
     import jax
 
     # The application (not the library) chooses float64, recommended for identification.

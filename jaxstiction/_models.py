@@ -143,7 +143,7 @@ class LoopModel(eqx.Module):
 
     chain: tuple
     process: LinearProcess
-    noise: NoiseModel = NoiseModel()
+    noise: NoiseModel = eqx.field(default_factory=NoiseModel)
     op_offset: Float[Array, ""] = eqx.field(converter=_f, default=0.0)
     pv_offset: Float[Array, ""] = eqx.field(converter=_f, default=0.0)
     output: tuple = ()

@@ -1,6 +1,9 @@
 """The command line: one-line errors with exit 2, and the JSON contract (the documented contract)."""
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -76,3 +79,36 @@ def test_fit_json_contract_on_chem23(isdb, tmp_path):
 def test_help(cmd):
     res = run(*cmd)
     assert res.returncode == 0 and "usage" in res.stdout
+
+
+def test_import_leaves_the_backend_alone():
+    """Importing the package (and its command line) creates no JAX backend, so the
+    command line can still choose XLA's compiler flags, and users their platform."""
+    code = ("import jaxstiction, jaxstiction._cli, jax._src.xla_bridge as xb;"
+            "print(xb.backends_are_initialized())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_lean_compiler_flag(monkeypatch):
+    """The command line adds the fusion-emitter flag to XLA_FLAGS, keeps the user's
+    own flags, never overrides the user's own choice of it, and can be turned off."""
+    import jaxlib
+
+    from jaxstiction import _cli
+
+    monkeypatch.setattr(_cli, "_LEAN_COMPILER_VERIFIED", (jaxlib.__version__,))
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/nowhere")
+    _cli._lean_compiler()
+    assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/nowhere --xla_cpu_use_fusion_emitters=false"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    _cli._lean_compiler()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setenv("JAXSTICTION_LEAN_COMPILER", "off")
+    _cli._lean_compiler()
+    assert os.environ["XLA_FLAGS"] == ""
+    monkeypatch.delenv("JAXSTICTION_LEAN_COMPILER")
+    monkeypatch.setattr(_cli, "_LEAN_COMPILER_VERIFIED", ("0.0.",))
+    _cli._lean_compiler()
+    assert os.environ["XLA_FLAGS"] == ""
