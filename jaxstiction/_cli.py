@@ -243,6 +243,9 @@ def _compilation_cache():
         os.makedirs(where, exist_ok=True)
     except OSError:
         return
+    from ._programs import use_program_cache
+
+    use_program_cache(os.path.join(where, "programs"))
     jax.config.update("jax_compilation_cache_dir", where)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -12,9 +12,10 @@ import numpy as np
 from ._blocks import Kano
 from ._checks import check_loop
 from ._criteria import simulate_scored
-from ._estimate import estimate, LoopFit, min_length, RESULTS, Settings
+from ._estimate import LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
 from ._loop import make_loop
+from ._programs import estimate_cached
 from ._spline import scale_input, valve_curves
 
 
@@ -258,5 +259,5 @@ def fit(op, pv, *, ts: float = 1.0, validate: float = 1 / 3, name: str = "loop",
         raise ValueError(f"`validate` must be in [0, 1), got {validate}")
     settings = dataclasses.replace(settings, validate=float(validate)) if settings.validate != validate else settings
     op, pv = checked(op, pv, name, settings)
-    result = estimate(make_loop(op, pv, ts), settings)
+    result = estimate_cached(make_loop(op, pv, ts), settings)
     return report(result, op, pv, name=name, ts=ts, settings=settings)

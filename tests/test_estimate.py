@@ -147,3 +147,33 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
         js.fit(op, np.asarray(lp.pv), settings=SMALL)
     with pytest.raises(ValueError, match="too short|at least"):
         js.fit(np.asarray(lp.op)[:100], np.asarray(lp.pv)[:100], settings=SMALL)
+
+
+def test_exported_program_cache(loops, singles, tmp_path, monkeypatch):
+    """`fit`'s on-disk cache of exported `estimate` programs: the first call exports
+    and saves, a new process (here: the in-memory table cleared) loads the file
+    without tracing `estimate` again, a corrupt file is rebuilt, and every route
+    gives what `estimate` gives."""
+    from jaxstiction import _programs
+
+    monkeypatch.setattr(_programs, "_loaded", {})
+    _programs.use_program_cache(tmp_path)
+    try:
+        first = _programs.estimate_cached(loops[0], SMALL)
+        (path,) = tmp_path.glob("estimate-*.jaxexport")
+        exports = []
+        real_export = _programs._export
+        monkeypatch.setattr(_programs, "_export", lambda *a: exports.append(1) or real_export(*a))
+        monkeypatch.setattr(_programs, "_loaded", {})
+        loaded = _programs.estimate_cached(loops[0], SMALL)
+        assert exports == []
+        path.write_bytes(b"not a program")
+        monkeypatch.setattr(_programs, "_loaded", {})
+        rebuilt = _programs.estimate_cached(loops[0], SMALL)
+        assert exports == [1]
+    finally:
+        _programs.use_program_cache(None)
+    for got in (first, loaded, rebuilt):
+        for name in ("fitness", "fitness_linear", "fitness_deadband", "S", "J", "band_percent"):
+            np.testing.assert_allclose(getattr(got, name), getattr(singles[0], name), rtol=1e-9)
+        assert code(got.result) == code(singles[0].result)

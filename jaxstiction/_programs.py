@@ -1,0 +1,124 @@
+"""Exported `estimate` programs on disk, so a new process need not trace it again.
+
+JAX's persistent compilation cache (which the command line turns on) skips XLA's
+compilation, but a new process still traces and lowers `estimate` first: ~4.5 s of a
+CHEM23 fit. The command line therefore also keeps `estimate`, exported with
+`jax.export` for one record shape and one `Settings`, next to that cache. A later
+process deserialises it (milliseconds) and the compilation cache supplies the
+compiled program.
+
+An entry is keyed by the package's own source, the JAX and jaxlib versions, the
+float64 switch, the settings and the record's shape; anything that fails to load is
+rebuilt, and anything that fails to save is only a missed speed-up. The library's
+`estimate` never touches the disk: only [`jaxstiction.fit`][] uses this, and only
+when the application has called `use_program_cache`.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import pathlib
+import pickle
+import tempfile
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._estimate import _estimate, estimate, LoopFit, Settings
+from ._loop import Loop
+
+
+_where: pathlib.Path | None = None
+_loaded: dict = {}  # key -> (jitted call, skeleton), for later calls in this process
+
+
+def use_program_cache(path: str | os.PathLike | None):
+    """Keep exported `estimate` programs in folder `path` (`None`: do not)."""
+    global _where
+    _where = None if path is None else pathlib.Path(path)
+
+
+@functools.cache
+def _source_hash() -> str:
+    h = hashlib.sha256()
+    for f in sorted(pathlib.Path(__file__).parent.glob("*.py")):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _key(loop: Loop, settings: Settings) -> str:
+    import jaxlib
+
+    parts = [_source_hash(), jax.__version__, jaxlib.__version__, str(jax.config.jax_enable_x64), repr(settings)]
+    parts += [f"{jnp.shape(x)}{jnp.result_type(x)}" for x in (loop.op, loop.pv, loop.mask, loop.ts)]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
+
+
+def _is_struct(x):
+    return isinstance(x, jax.ShapeDtypeStruct)
+
+
+def _export(loop: Loop, settings: Settings):
+    skeleton = {}
+
+    def flat(op, pv, mask, ts):
+        out = _estimate(Loop(op=op, pv=pv, mask=mask, ts=ts), settings)
+        skeleton["fit"] = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype) if eqx.is_array(x) else x, out)
+        return jax.tree.leaves(eqx.filter(out, eqx.is_array))
+
+    args = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in (loop.op, loop.pv, loop.mask, loop.ts)]
+    exported = jax.export.export(jax.jit(flat))(*args)
+    return exported, skeleton["fit"]
+
+
+def _call(call, skeleton, loop: Loop) -> LoopFit:
+    leaves = call(loop.op, loop.pv, loop.mask, loop.ts)
+    dynamic, static = eqx.partition(skeleton, _is_struct, is_leaf=_is_struct)
+    return eqx.combine(jax.tree.unflatten(jax.tree.structure(dynamic, is_leaf=_is_struct), leaves), static)
+
+
+def _save(path: pathlib.Path, exported, skeleton):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = pickle.dumps((bytes(exported.serialize()), skeleton))
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        f.write(blob)
+    os.replace(tmp, path)
+
+
+def _load(path: pathlib.Path):
+    blob, skeleton = pickle.loads(path.read_bytes())
+    return jax.export.deserialize(bytearray(blob)), skeleton
+
+
+def estimate_cached(loop: Loop, settings: Settings = Settings()) -> LoopFit:
+    """[`jaxstiction.estimate`][], from an exported program on disk when the
+    application has enabled the cache (see the module docstring); the same result."""
+    if _where is None:
+        return estimate(loop, settings)
+    key = _key(loop, settings)
+    if key in _loaded:
+        return _call(*_loaded[key], loop)
+    path = _where / f"estimate-{key}.jaxexport"
+    entry = None
+    if path.exists():
+        try:
+            entry = _load(path)
+        except Exception:  # stale or corrupt: rebuilt below
+            entry = None
+    if entry is None:
+        try:
+            entry = _export(loop, settings)
+        except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
+            return estimate(loop, settings)
+        try:
+            _save(path, *entry)
+        except Exception:  # e.g. a read-only cache or no `flatbuffers`: not saved
+            pass
+    exported, skeleton = entry
+    _loaded[key] = (jax.jit(exported.call), skeleton)
+    return _call(*_loaded[key], loop)
