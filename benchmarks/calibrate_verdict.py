@@ -37,7 +37,7 @@ from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run 
 
 from jaxstiction import Deadband, Experiment, Kano, make_loop, simulate_loop, Sinusoid  # noqa: E402
 from jaxstiction._scenarios import nominal_model  # noqa: E402
-from jaxstiction._screen import screen_loops  # noqa: E402
+from jaxstiction._screen import screen_loops, ScreenSettings, Settings  # noqa: E402
 
 
 KINDS = ("stiction", "none", "tight", "external", "deadband")
@@ -72,7 +72,12 @@ def main():
     p.add_argument("--seeds", type=seeds_arg, default=list(range(6)))
     p.add_argument("--kinds", default=",".join(KINDS))
     p.add_argument("--json", action="store_true")
+    p.add_argument("--full-search", action="store_true",
+                   help="the estimator's full Kano search (PhysicalSettings()) instead of the screen's lighter one")
     args = p.parse_args()
+    settings = ScreenSettings()
+    if args.full_search:
+        settings = ScreenSettings(estimate=Settings(use_spline=False))
     kinds = args.kinds.split(",")
     loops, meta = {}, {}
     for kind in kinds:
@@ -82,7 +87,7 @@ def main():
             loops[name] = loop
             meta[name] = dict(kind=kind, seed=s, setpoint="GBN" if sp > 10 else "rare", truth=truth)
     t0 = time.time()
-    results = screen_loops(loops)
+    results = screen_loops(loops, settings)
     dt = time.time() - t0
     rows = []
     for r in results:

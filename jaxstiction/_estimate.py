@@ -42,7 +42,9 @@ class Settings(eqx.Module):
     """Settings of [`jaxstiction.estimate`][] (all static: they fix shapes).
 
     - `spline`: [`jaxstiction.SplineSettings`][]; `physical`:
-      [`jaxstiction.PhysicalSettings`][]; `use_physical=False` skips the Kano model.
+      [`jaxstiction.PhysicalSettings`][]; `use_physical=False` skips the Kano model,
+      `use_spline=False` the spline family and the paper's literal method (their
+      fields are then NaN; the default of [`jaxstiction.ScreenSettings`][]).
     - `validate`: fraction of the real samples held out at the end and scored; 0
       scores on the estimation data (as the paper did for its industrial loop).
     - `robust_factor`: the robust direction threshold in OP-noise standard deviations.
@@ -53,12 +55,15 @@ class Settings(eqx.Module):
     physical: PhysicalSettings = PhysicalSettings()
     score: ScoreSettings = ScoreSettings()
     use_physical: bool = eqx.field(static=True, default=True)
+    use_spline: bool = eqx.field(static=True, default=True)
     validate: float = eqx.field(static=True, default=1 / 3)
     robust_factor: float = eqx.field(static=True, default=3.0)
 
     def __check_init__(self):
         if not 0.0 <= self.validate < 1.0:
             raise ValueError(f"`validate` must be in [0, 1), got {self.validate}")
+        if not (self.use_spline or self.use_physical):
+            raise ValueError("`use_spline` and `use_physical` cannot both be False: no model family left")
 
 
 # deadband widths tried, as multiples of the physical fit's S
@@ -251,7 +256,14 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     # ------------------------------------------------------------ spline family
     sset = settings.spline
     D = sset.max_delay
-    cand = fit_spline_candidates(y, u, H, w_est, mask, sset)
+    if settings.use_spline:
+        cand = fit_spline_candidates(y, u, H, w_est, mask, sset)
+    else:
+        # no spline family: a placeholder of the same shapes (NaN criteria, so it is
+        # never chosen), computing nothing
+        shapes = jax.eval_shape(lambda: fit_spline_candidates(y, u, H, w_est, mask, sset))
+        cand = jax.tree.map(
+            lambda t: jnp.full(t.shape, jnp.nan if jnp.issubdtype(t.dtype, jnp.floating) else 0, t.dtype), shapes)
     foe_grid = jnp.where(jnp.isfinite(cand.foe), cand.foe, jnp.inf)
     K = foe_grid.shape[1]
     flat = jnp.argmin(foe_grid.ravel())
@@ -379,6 +391,8 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         scores[i] for i in range(len(pairs)))
     if not settings.use_physical:
         fit_phys = fit_phys_est = nan
+    if not settings.use_spline:
+        fit_paper = fit_spline = nan
 
     band_spline = spline_band(pick.model.beta, knots[ki], kmasks[ki], lo, hi)
     band = jnp.where(physical, S, band_spline)

@@ -177,3 +177,19 @@ def test_exported_program_cache(loops, singles, tmp_path, monkeypatch):
         for name in ("fitness", "fitness_linear", "fitness_deadband", "S", "J", "band_percent"):
             np.testing.assert_allclose(getattr(got, name), getattr(singles[0], name), rtol=1e-9)
         assert code(got.result) == code(singles[0].result)
+
+
+def test_without_the_spline_family(loops, singles):
+    """`use_spline=False` (the screen's profile) leaves the Kano model and the
+    verdict's nulls exactly as the full estimator fits them; the spline fields are
+    NaN and the physical model is the chosen one. Both families off is an error."""
+    import dataclasses
+
+    got = js.estimate(loops[0], dataclasses.replace(SMALL, use_spline=False))
+    for name in ("S", "J", "fitness_physical", "fitness_physical_estimation", "fitness_linear",
+                 "fitness_linear_estimation", "fitness_deadband", "fitness_deadband_estimation"):
+        np.testing.assert_allclose(getattr(got, name), getattr(singles[0], name), rtol=1e-9)
+    assert np.isnan(float(got.fitness_spline)) and np.isnan(float(got.fitness_paper))
+    assert int(got.kind) == 1 and float(got.fitness) == pytest.approx(float(got.fitness_physical))
+    with pytest.raises(ValueError, match="use_spline"):
+        js.Settings(use_spline=False, use_physical=False)
