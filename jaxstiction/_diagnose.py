@@ -40,12 +40,16 @@ import optimistix as optx
 
 from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, Sinusoid, TravelLimits
 from ._criteria import simulate_scored
+from ._estimate import estimate, Settings
 from ._filters import lagged, lfilter
 from ._linalg import is_stable, lstsq
 from ._locate import ar_whiten, cross_correlation, locate, spectrum_lines, whiteness
+from ._loop import make_loop
 from ._models import LinearProcess, LoopModel, NoiseModel
 from ._physical import _delay, fit_oe
 from ._reduce import fit_noise_model
+from ._screen import SCREEN_ESTIMATE
+from ._verdict import usable
 
 
 VERDICTS = ("none", "stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag",
@@ -109,7 +113,12 @@ class DiagnoseSettings:
     bootstrap replicates (the smallest p-value is 1/(bootstrap+1)); `alpha`:
     family-wise significance level; `order`: linear order when no nominal model is
     given; `max_delay`: delays tried then; `grid`: points per axis of the stiction and
-    deadband grids; `periods`: periods tried for an external oscillation."""
+    deadband grids; `periods`: periods tried for an external oscillation.
+
+    Without a nominal model, stiction is also refitted jointly with the linear part
+    (poles free) by [`jaxstiction.estimate`][] with settings `joint` (default: the
+    screen's profile), its significance from `joint_bootstrap` replicates of that
+    whole fit (0 turns the joint fit off)."""
 
     holdout: float = 1 / 3
     bootstrap: int = 39
@@ -119,6 +128,8 @@ class DiagnoseSettings:
     grid: int = 36
     periods: int = 48
     seed: int = 0
+    joint: Settings = SCREEN_ESTIMATE
+    joint_bootstrap: int = 9
 
 
 def _diff(a, b) -> float:
@@ -371,6 +382,88 @@ def _quantisation(pv: np.ndarray, residual_std: float) -> dict | None:
 # --------------------------------------------------------------- diagnose
 
 
+def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: DiagnoseSettings, say):
+    """Stiction refitted jointly with the linear part, for a loop with no nominal model.
+
+    The grid candidate holds the nominal's poles, which a linear-valve fit to a
+    sticky loop gets wrong; here [`jaxstiction.estimate`][] fits the Kano valve with
+    a Box–Jenkins linear part (poles free) and, the same way, a linear valve. The
+    statistic is the gain in simulation fitness of the Kano valve over the linear
+    valve on the estimation data (points); its null comes from `joint_bootstrap` records
+    simulated from the fitted linear-valve model plus noise from its noise model
+    (recorded OP), each fitted the same way (fewer on records longer than 3000
+    samples, at least 3). Returns a `Finding` or `None` (the fit failed)."""
+    st = dataclasses.replace(settings.joint, validate=float(settings.holdout))
+    def call(o, p):  # `estimate` is jitted: one compilation per record length and settings
+        return estimate(make_loop(o, p), st)
+
+    fit = call(op, pv)
+    if not bool(usable(fit.result)):
+        return None
+
+    def statistic(f):
+        # the gain in simulation fitness on the estimation data, both models scored
+        # the same way on the same samples (their Box-Jenkins criteria are not: the
+        # Kano fit skips the samples before its valve first moves)
+        return float(f.fitness_physical_estimation - f.fitness_linear_estimation)
+
+    T = statistic(fit)
+    opj, pvj = jnp.asarray(op), jnp.asarray(pv)
+    whole = jnp.ones_like(opj)
+    lin_sim = np.asarray(_jit_scored(fit.linear, opj, pvj, whole)[0])
+    c_n, d_n = fit.linear.noise.c, fit.linear.noise.d
+    eps = np.asarray(lfilter(d_n, c_n, jnp.asarray(pv - lin_sim)))
+    sig = float(np.std(eps[20:n_est]))
+    key = jr.fold_in(jr.key(settings.seed), 7919)
+    # each replicate is a whole fit: fewer of them on long records (at least 3)
+    reps = min(settings.joint_bootstrap, max(3, round(settings.joint_bootstrap * 3000 / len(op))))
+    say(f"joint stiction fit: bootstrap of {reps} whole refits")
+    Tb, gains = [], []
+    for b in range(reps):
+        e = np.asarray(jr.normal(jr.fold_in(key, b), (len(op) + 300,))) * sig
+        v = np.asarray(lfilter(c_n, d_n, jnp.asarray(e)))[300:]
+        fb = call(op, lin_sim + v)
+        if bool(usable(fb.result)) and np.isfinite(float(fb.fitness_physical - fb.fitness_linear)):
+            Tb.append(statistic(fb))
+            gains.append(float(fb.fitness_physical - fb.fitness_linear))
+    if len(Tb) < 3:
+        return None
+    Tb = np.asarray(Tb)
+    mean, std = float(Tb.mean()), max(float(Tb.std(ddof=1)), 1e-9)
+    p = min(1.0, families * _normal_sf((T - mean) / std))
+    sig_f = p <= settings.alpha and T > 0
+    params = {"S": round(float(fit.S), 4), "J": round(float(fit.J), 4),
+              "interval": {"S": [round(float(x), 4) for x in np.asarray(fit.S_interval)],
+                           "J": [round(float(x), 4) for x in np.asarray(fit.J_interval)]}}
+    ev = {"statistic": round(T, 3), "p_value": round(p, 4), "bootstrap_median": round(float(np.median(Tb)), 3),
+          "significant": bool(sig_f), "joint": True,
+          "method": f"Kano valve and Box-Jenkins linear part refitted jointly; null from {len(Tb)} bootstrap refits"}
+    if not sig_f:
+        return Finding("stiction", params, ev, before, before, False, fit.physical)
+    model = fit.physical
+    after = _heldout(model, op, pv, n_est)
+    gain = _diff(after["fitness"], before["fitness"])
+    kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
+    sim_after = np.asarray(_jit_scored(model, opj, pvj, whole)[0])
+    cc = cross_correlation(op[:n_est], ar_whiten((pv - sim_after)[:n_est], 2)[0])
+    spread = float(np.std(gains))
+    need = max(0.5, spread)
+    # J above 0: the likelihood ratio of the Kano fit against the deadband fit (Kano
+    # with J = 0, width searched), chi2(1) at 95 %, as for the grid candidates
+    lr_slip = float(fit.n_estimation) * float(np.log(float(fit.deadband.noise.variance)
+                                                     / float(fit.physical.noise.variance)))
+    slips = lr_slip > 3.84
+    # ranked against the grid families by the likelihood ratio of the two fits'
+    # estimation-data criteria, as theirs are
+    lr = float(fit.n_estimation) * float(np.log(float(fit.linear.noise.variance) / float(fit.physical.noise.variance)))
+    ev.update(heldout_gain=round(gain, 3), k_step_gain=round(float(kgain), 5),
+              residual_cross_correlation_passes=cc["passes"], rank_score=round(lr - 4, 3), spread=round(spread, 3),
+              gain_needed=round(need, 3), slip_statistic=round(lr_slip, 3))
+    if not slips:
+        ev["note"] = "J is not significantly above 0 (the Kano valve does not beat a deadband): deadband"
+    return Finding("stiction", params, ev, before, after, bool(gain > need and slips), model)
+
+
 def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
              progress=None) -> Diagnosis:
     """Diagnose the mismatch between `nominal` (default: a linear-valve model fitted
@@ -570,9 +663,15 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             ok = gain > need
         findings.append(Finding(fam, {**params, "interval": iv}, ev, before, after, bool(ok), model))
 
+    if not given and settings.joint_bootstrap > 0:
+        # the grid's stiction candidate holds the linear-valve nominal's poles: refit
+        # stiction jointly with the linear part and let that finding stand for it
+        joint = _joint_stiction(op, pv, n_est, before, len(names), settings, say)
+        if joint is not None:
+            findings = [joint if f.effect == "stiction" else f for f in findings]
     # stiction versus deadband: J must be significantly above zero
     acc = {f.effect: f for f in findings if f.accepted}
-    if "stiction" in acc and "deadband" in acc:
+    if "stiction" in acc and "deadband" in acc and not acc["stiction"].evidence.get("joint"):
         vs = float(np.min(v_in[slices["stiction"]]))
         vd = float(np.min(v_in[slices["deadband"]]))
         if count * np.log(vd / vs) < 3.84:
