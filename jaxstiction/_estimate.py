@@ -377,22 +377,29 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     physical = foe_ph < foe_s
     model = jax.tree.map(lambda p, s: jnp.where(physical, p, s), m_phys, m_spline)
 
-    # Every score (model x scored part), one after the other in one `lax.map`: one
-    # trace instead of ten, and the memory of one simulation at a time.
-    models = (model, m_paper, m_spline, m_phys, m_lin, m_db)
-    pairs = ((0, w_val), (0, w_est), (1, w_val), (2, w_val), (3, w_val), (4, w_val), (3, w_est), (4, w_est),
-             (5, w_val), (5, w_est))
-    stacked = jax.tree.map(lambda *t: jnp.stack(t), *(models[i] for i, _ in pairs))
-    ws = jnp.stack([w for _, w in pairs])
+    # Every score (model x scored part) the settings call for, one after the other in
+    # one `lax.map`: one trace, and the memory of one simulation at a time. The
+    # chosen model is one of two families, so its scores are theirs (`jnp.where`).
+    parts = {"val": w_val, "est": w_est}
+    wanted = [("lin", "val"), ("lin", "est"), ("db", "val"), ("db", "est")]
+    if settings.use_physical:
+        wanted += [("phys", "val"), ("phys", "est")]
+    if settings.use_spline:
+        wanted += [("paper", "val"), ("spline", "val"), ("spline", "est")]
+    models = {"paper": m_paper, "spline": m_spline, "phys": m_phys, "lin": m_lin, "db": m_db}
+    stacked = jax.tree.map(lambda *t: jnp.stack(t), *(models[m] for m, _ in wanted))
+    ws = jnp.stack([parts[w] for _, w in wanted])
     stacked, ws, _ = jax.lax.optimization_barrier((stacked, ws, foe_ph))
-    scores = jax.lax.map(lambda mw: score(mw[0], op, pv, mw[1], settings.score), (stacked, ws))
+    out = jax.lax.map(lambda mw: score(mw[0], op, pv, mw[1], settings.score), (stacked, ws))
     nan = jnp.asarray(jnp.nan, dtype)
-    fit_val, fit_est, fit_paper, fit_spline, fit_phys, fit_lin, fit_phys_est, fit_lin_est, fit_db, fit_db_est = (
-        scores[i] for i in range(len(pairs)))
-    if not settings.use_physical:
-        fit_phys = fit_phys_est = nan
-    if not settings.use_spline:
-        fit_paper = fit_spline = nan
+    scores = {k: out[i] for i, k in enumerate(wanted)}
+    fit_lin, fit_lin_est = scores["lin", "val"], scores["lin", "est"]
+    fit_db, fit_db_est = scores["db", "val"], scores["db", "est"]
+    fit_phys, fit_phys_est = scores.get(("phys", "val"), nan), scores.get(("phys", "est"), nan)
+    fit_paper = scores.get(("paper", "val"), nan)
+    fit_spline, fit_spline_est = scores.get(("spline", "val"), nan), scores.get(("spline", "est"), nan)
+    fit_val = jnp.where(physical, fit_phys, fit_spline)
+    fit_est = jnp.where(physical, fit_phys_est, fit_spline_est)
 
     band_spline = spline_band(pick.model.beta, knots[ki], kmasks[ki], lo, hi)
     band = jnp.where(physical, S, band_spline)
