@@ -382,6 +382,27 @@ def _quantisation(pv: np.ndarray, residual_std: float) -> dict | None:
 # --------------------------------------------------------------- diagnose
 
 
+def _bootstrap_noise(c, d, residual, n_est: int, key, count: int, n: int) -> list[np.ndarray]:
+    """`count` noise records of length `n` from the noise model $C/D$: innovations of
+    the standard deviation that whitening `residual` by $D/C$ leaves on the estimation
+    samples (the first 20 skipped), filtered by $C/D$ after a 300-sample warm-up."""
+    c, d = jnp.asarray(c), jnp.asarray(d)
+    sig = float(np.std(np.asarray(lfilter(d, c, jnp.asarray(residual)))[20:n_est]))
+    return [np.asarray(lfilter(c, d, jr.normal(jr.fold_in(key, b), (n + 300,)) * sig))[300:] for b in range(count)]
+
+
+def _prove(model: LoopModel, op, pv, n_est: int, before: dict):
+    """A candidate model's proof: its held-out figures, its held-out simulation and
+    k-step gains over `before`, and the input cross-correlation test of its
+    (AR(2)-whitened) estimation residual."""
+    after = _heldout(model, op, pv, n_est)
+    gain = _diff(after["fitness"], before["fitness"])
+    kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
+    sim = np.asarray(_jit_scored(model, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
+    cc = cross_correlation(op[:n_est], ar_whiten((pv - sim)[:n_est], 2)[0])
+    return after, gain, kgain, cc
+
+
 def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: DiagnoseSettings, say):
     """Stiction refitted jointly with the linear part, for a loop with no nominal model.
 
@@ -408,24 +429,19 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
         return float(f.fitness_physical_estimation - f.fitness_linear_estimation)
 
     T = statistic(fit)
-    opj, pvj = jnp.asarray(op), jnp.asarray(pv)
-    whole = jnp.ones_like(opj)
-    lin_sim = np.asarray(_jit_scored(fit.linear, opj, pvj, whole)[0])
-    c_n, d_n = fit.linear.noise.c, fit.linear.noise.d
-    eps = np.asarray(lfilter(d_n, c_n, jnp.asarray(pv - lin_sim)))
-    sig = float(np.std(eps[20:n_est]))
-    key = jr.fold_in(jr.key(settings.seed), 7919)
+    lin_sim = np.asarray(_jit_scored(fit.linear, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
     # each replicate is a whole fit: fewer of them on long records (at least 3)
     reps = min(settings.joint_bootstrap, max(3, round(settings.joint_bootstrap * 3000 / len(op))))
     say(f"joint stiction fit: bootstrap of {reps} whole refits")
+    noise = _bootstrap_noise(fit.linear.noise.c, fit.linear.noise.d, pv - lin_sim, n_est,
+                             jr.fold_in(jr.key(settings.seed), 7919), reps, len(op))
     Tb, gains = [], []
-    for b in range(reps):
-        e = np.asarray(jr.normal(jr.fold_in(key, b), (len(op) + 300,))) * sig
-        v = np.asarray(lfilter(c_n, d_n, jnp.asarray(e)))[300:]
+    for v in noise:
         fb = call(op, lin_sim + v)
-        if bool(usable(fb.result)) and np.isfinite(float(fb.fitness_physical - fb.fitness_linear)):
+        gain_b = float(fb.fitness_physical - fb.fitness_linear)
+        if bool(usable(fb.result)) and np.isfinite(gain_b):
             Tb.append(statistic(fb))
-            gains.append(float(fb.fitness_physical - fb.fitness_linear))
+            gains.append(gain_b)
     if len(Tb) < 3:
         return None
     Tb = np.asarray(Tb)
@@ -441,24 +457,23 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
     if not sig_f:
         return Finding("stiction", params, ev, before, before, False, fit.physical)
     model = fit.physical
-    after = _heldout(model, op, pv, n_est)
-    gain = _diff(after["fitness"], before["fitness"])
-    kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
-    sim_after = np.asarray(_jit_scored(model, opj, pvj, whole)[0])
-    cc = cross_correlation(op[:n_est], ar_whiten((pv - sim_after)[:n_est], 2)[0])
+    after, gain, kgain, cc = _prove(model, op, pv, n_est, before)
     spread = float(np.std(gains))
     need = max(0.5, spread)
-    # J above 0: the likelihood ratio of the Kano fit against the deadband fit (Kano
-    # with J = 0, width searched), chi2(1) at 95 %, as for the grid candidates
-    lr_slip = float(fit.n_estimation) * float(np.log(float(fit.deadband.noise.variance)
-                                                     / float(fit.physical.noise.variance)))
+
+    def lr(null):  # likelihood ratio of the Kano fit against `null`, estimation data
+        return float(fit.n_estimation) * float(np.log(float(null.noise.variance) / float(model.noise.variance)))
+
+    # J above 0: against the deadband fit (Kano with J = 0, width searched), chi2(1)
+    # at 95 %, as for the grid candidates
+    lr_slip = lr(fit.deadband)
     slips = lr_slip > 3.84
-    # ranked against the grid families by the likelihood ratio of the two fits'
-    # estimation-data criteria, as theirs are
-    lr = float(fit.n_estimation) * float(np.log(float(fit.linear.noise.variance) / float(fit.physical.noise.variance)))
+    # ranked against the grid families by the likelihood ratio against the linear
+    # valve, as theirs are
+    lr_linear = lr(fit.linear)
     ev.update(heldout_gain=round(gain, 3), k_step_gain=round(float(kgain), 5),
-              residual_cross_correlation_passes=cc["passes"], rank_score=round(lr - 4, 3), spread=round(spread, 3),
-              gain_needed=round(need, 3), slip_statistic=round(lr_slip, 3))
+              residual_cross_correlation_passes=cc["passes"], rank_score=round(lr_linear - 4, 3),
+              spread=round(spread, 3), gain_needed=round(need, 3), slip_statistic=round(lr_slip, 3))
     if not slips:
         ev["note"] = "J is not significantly above 0 (the Kano valve does not beat a deadband): deadband"
     return Finding("stiction", params, ev, before, after, bool(gain > need and slips), model)
@@ -561,18 +576,11 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
 
     # ---------------------------------------------------- parametric bootstrap
     say(f"bootstrap: {settings.bootstrap} replicates")
-    one = np.ones(1)
-    c_n, d_n = np.asarray(c0), np.asarray(d0)
-    eps0 = np.asarray(lfilter(jnp.asarray(d_n), jnp.asarray(c_n), jnp.asarray(pv - base_sim)))
-    sig = float(np.std(eps0[20:n_est]))
-    key = jr.key(settings.seed)
-    T_boot, pv_boot = [], []
-    for b in range(settings.bootstrap):
-        e = np.asarray(jr.normal(jr.fold_in(key, b), (n + 300,))) * sig
-        v = np.asarray(lfilter(jnp.asarray(c_n), jnp.asarray(d_n), jnp.asarray(e)))[300:]
+    pv_boot = _bootstrap_noise(c0, d0, pv - base_sim, n_est, jr.key(settings.seed), settings.bootstrap, n)
+    T_boot = []
+    for v in pv_boot:
         pv_b = base_sim + v
         T_boot.append(stats((jnp.asarray(pv_b) - mu) / sy, v)[0])
-        pv_boot.append(v)
     names = list(T_obs)
     Tb = np.array([[tb[f] for f in names] for tb in T_boot])  # (B, F)
     med = np.median(Tb, axis=0)
@@ -644,12 +652,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         if not sig_f:
             findings.append(Finding(fam, {**params, "interval": iv}, ev, before, before, False))
             continue
-        after = _heldout(model, op, pv, n_est)
-        gain = _diff(after["fitness"], before["fitness"])
-        kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
-        sim_after = np.asarray(_jit_scored(model, opj, pvj, whole)[0])
-        eps_after, _ = ar_whiten((pv - sim_after)[:n_est], 2)
-        cc = cross_correlation(op[:n_est], eps_after)
+        after, gain, kgain, cc = _prove(model, op, pv, n_est, before)
         ev.update(heldout_gain=round(gain, 3), k_step_gain=round(float(kgain), 5),
                   residual_cross_correlation_passes=cc["passes"],
                   rank_score=round(T_obs[fam] - 2 * dof.get(fam, 1), 3))
