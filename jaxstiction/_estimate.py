@@ -351,22 +351,25 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
 
     nb = max(nb, pset.max_delay + pset.order)
     na = max(na, pset.order + 1)
-    S_db = jnp.where(jnp.isfinite(S), S, 0.0) * jnp.asarray(DEADBAND_WIDTHS, dtype)
-    delay_db = jnp.asarray(delay_ph if settings.use_physical else 1)
-    x_db, wb_db = jax.vmap(lambda width: valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count))(S_db)
     # one vmapped Box-Jenkins fit for both nulls: the linear valve at every delay,
-    # then the deadband at each width (at the physical fit's delay)
-    L, B = pset.max_delay, len(DEADBAND_WIDTHS)
-    xs = jnp.concatenate([jnp.broadcast_to(x_lin, (L, N)), scale_input(x_db, lo, hi)])
-    wbs = jnp.concatenate([jnp.broadcast_to(w_est, (L, N)), wb_db])
-    ds = jnp.concatenate([jnp.arange(1, L + 1), jnp.full((B,), delay_db)])
+    # then the deadband at each width around S (at the physical fit's delay)
+    L = pset.max_delay
+    xs, wbs, ds = jnp.broadcast_to(x_lin, (L, N)), jnp.broadcast_to(w_est, (L, N)), jnp.arange(1, L + 1)
+    if settings.use_physical:
+        S_db = jnp.where(jnp.isfinite(S), S, 0.0) * jnp.asarray(DEADBAND_WIDTHS, dtype)
+        x_db, wb_db = jax.vmap(lambda width: valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count))(S_db)
+        xs = jnp.concatenate([xs, scale_input(x_db, lo, hi)])
+        wbs = jnp.concatenate([wbs, wb_db])
+        ds = jnp.concatenate([ds, jnp.full((len(DEADBAND_WIDTHS),), delay_ph)])
     null_fits, v_null = jax.vmap(oe_at)(xs, wbs, ds)
     bl = jnp.argmin(v_null[:L])
     m_lin = as_model(jax.tree.map(lambda t: t[bl], null_fits), v_null[bl], none)
-    bd = jnp.argmin(v_null[L:])
-    m_db = as_model(jax.tree.map(lambda t: t[L + bd], null_fits), v_null[L + bd], Kano(S_db[bd], jnp.zeros((), dtype)))
-    if not settings.use_physical:
-        m_db = m_lin  # without a fitted S, every width is 0: a deadband of width 0 is the linear valve
+    if settings.use_physical:
+        bd = jnp.argmin(v_null[L:])
+        m_db = as_model(jax.tree.map(lambda t: t[L + bd], null_fits), v_null[L + bd],
+                        Kano(S_db[bd], jnp.zeros((), dtype)))
+    else:
+        m_db = m_lin  # without a fitted S there is no width to try: the deadband of width 0 is the linear valve
     m_spline = _pad_model(m_spline, nb, na)
     m_paper = _pad_model(m_paper, nb, na)
     m_phys = _pad_model(m_phys, nb, na)
