@@ -1,15 +1,12 @@
-import os
 import pathlib
 
+from jaxstiction._cli import _lean_compiler
 
-# As the command line does (see `jaxstiction._cli._lean_compiler`): XLA's older CPU
-# fusion code generator compiles in under half the memory and faster, which is most
-# of this suite's time. Set before JAX creates its backend.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    import jaxlib
 
-    if jaxlib.__version__.startswith("0.10."):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
+# The command line's compiler flag (XLA's older CPU fusion code generator: under half
+# the compile memory, and faster, which is most of this suite's time). Importing the
+# package creates no JAX backend, so it still takes effect here.
+_lean_compiler()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
