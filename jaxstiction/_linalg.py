@@ -174,7 +174,12 @@ def gram_r(A, weights, ridge=1e-13):
     `_relax.relax_problem`): there the criterion, not the coefficients, is what the
     fit needs, and the two factorisations give the same minimum to ~1e-10 relative."""
     Aw = A * weights[:, None]
-    G = Aw.T @ Aw
+    return gram_cholesky(Aw.T @ Aw, ridge)
+
+
+def gram_cholesky(G, ridge=1e-13):
+    """The upper Cholesky factor of a Gram matrix `G`, computed on its column-scaled
+    form (unit diagonal) plus `ridge` on the diagonal, then scaled back."""
     s = jnp.sqrt(jnp.diag(G))
     s = jnp.where(s > 0, s, 1.0)
     Gs = G / (s[:, None] * s[None, :]) + ridge * jnp.eye(G.shape[0], dtype=G.dtype)

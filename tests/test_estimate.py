@@ -19,7 +19,7 @@ from jaxstiction._scenarios import nominal_model, paper_experiment
 SMALL = js.Settings(
     spline=js.SplineSettings(arx_order=5, knot_counts=(3, 5), max_order=2, max_delay=2, welch_segment=64,
                              relax_steps=150, polish_steps=20),
-    physical=js.PhysicalSettings(num_S=41, num_J=6, starts=4, refine=9, refine_S=41, final=3, line=21, rounds=2,
+    physical=js.PhysicalSettings(num_S=61, num_J=6, starts=4, refine=9, refine_S=41, final=3, line=21, rounds=2,
                                  polish_starts=3, init_count=3, oe_steps=20),
     score=js.ScoreSettings(init_count=20),
     validate=0.25,

@@ -103,13 +103,15 @@ def test_arx_criterion_equals_numpy_lstsq(sticky):
         x, wb = valve_from(op, s, j, w, 10, -1, 3)
         x = js.scale_input(x, lo, hi)
         assert float(jnp.sum(wb)) > 100
-        for d in (1, 2, 3):
-            got = float(arx_loss(x, y, wb, 4, d))
-            X = np.asarray(_arx_design(x, y, 4, d))
-            m = np.asarray(wb) * (np.arange(y.shape[0]) >= 7)
-            th = np.linalg.lstsq(X * m[:, None], np.asarray(y) * m, rcond=None)[0]
-            want = np.sum((m * (np.asarray(y) - X @ th)) ** 2) / m.sum()
-            np.testing.assert_allclose(got, want, rtol=1e-9)
+        for order in (4, 8):
+            # every delay from one shared Gram matrix, each against its own lstsq
+            got = np.asarray(arx_loss(x, y, wb, order, jnp.arange(1, 4), 3))
+            for d in (1, 2, 3):
+                X = np.asarray(_arx_design(x, y, order, d))
+                m = np.asarray(wb) * (np.arange(y.shape[0]) >= order + 3)
+                th = np.linalg.lstsq(X * m[:, None], np.asarray(y) * m, rcond=None)[0]
+                want = np.sum((m * (np.asarray(y) - X @ th)) ** 2) / m.sum()
+                np.testing.assert_allclose(got[d - 1], want, rtol=1e-9)
 
 
 def test_grad_through_relaxation_reduction_and_polish(sticky):
