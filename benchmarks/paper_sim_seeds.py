@@ -48,8 +48,8 @@ from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run 
 from jaxstiction._blocks import Kano  # noqa: E402
 from jaxstiction._criteria import simulate_scored  # noqa: E402
 from jaxstiction._demo import paper_sim_case  # noqa: E402
+from jaxstiction._diagnose import _loop_model  # noqa: E402
 from jaxstiction._filters import fitness  # noqa: E402
-from jaxstiction._models import LinearProcess, NoiseModel  # noqa: E402
 from jaxstiction._physical import fit_oe  # noqa: E402
 from jaxstiction._scenarios import make_scenario  # noqa: E402
 
@@ -64,20 +64,20 @@ _CELL_GRID = 0.0005  # resolution of the cell search (% of OP)
 _CELL_HALF = 0.3     # searched +- this far from the truth
 
 
+@jax.jit
+def _kano_paths(op, S, J):
+    # one Kano valve path per (S, J), each from the plant's start (at rest at op[0])
+    return jax.vmap(lambda s, j: Kano(s, j)(op, Kano(s, j).init(op[0])))(S, J)
+
+
 def _cell_centre(rec, S, J):
     """Centre of the cell of (S, J) on `rec`, per axis (see the module docstring)."""
     moves = np.diff(np.asarray(rec.valve)) != 0
     grid = np.arange(-_CELL_HALF, _CELL_HALF + _CELL_GRID / 2, _CELL_GRID)
 
-    @jax.jit
-    @jax.vmap
-    def path(s, j):
-        blk = Kano(s, j)
-        return blk(rec.op, blk.init(rec.op[0]))
-
     def centre(s, j, delta):
-        same = np.all((np.diff(np.asarray(path(jnp.asarray(s), jnp.asarray(j))), axis=1) != 0)[:, 50:]
-                      == moves[None, 50:], axis=1)
+        paths = np.asarray(_kano_paths(rec.op, jnp.asarray(s), jnp.asarray(j)))
+        same = np.all((np.diff(paths, axis=1) != 0)[:, 50:] == moves[None, 50:], axis=1)
         return float(np.mean(delta[same][[0, -1]])) if same.any() else 0.0  # narrower than the grid
 
     ones = np.ones_like(grid)
@@ -99,12 +99,7 @@ def references(seed):
     my, sy = jnp.mean(est.pv), jnp.std(est.pv)
     w = jnp.ones_like(est.pv).at[:10].set(0.0)  # a linear transient's worth of burn-in
     m, (c, d), _ = _oracle_linear((est.valve - cx) / sx, (est.pv - my) / sy, w)
-    b, a = m.linear.polynomials(3)
-    oracle = eqx.tree_at(
-        lambda L: (L.process, L.noise, L.op_offset, L.pv_offset), sc.plant,
-        (LinearProcess(b=tuple(float(v) for v in b * sy / sx), a=tuple(float(v) for v in a)),
-         NoiseModel(c=tuple(float(v) for v in c), d=tuple(float(v) for v in d)), float(cx), float(my + sy * m.offset)),
-    )
+    oracle = _loop_model(sc.plant.chain, m, (c, d), 3, my, sy, cx, sx, sc.plant.output)
     S0, J0 = float(sc.plant.chain[0].S), float(sc.plant.chain[0].J)
     Sc, Jc = _cell_centre(est, S0, J0)
     cell = eqx.tree_at(lambda L: L.chain, sc.plant, (Kano(Sc, Jc),))
