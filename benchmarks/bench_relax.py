@@ -3,9 +3,10 @@
 Compares, in one run and on the same loops,
 
 - JAX: `jax.jit(jax.vmap(relax(relax_problem(y, phi, n, method=C), method=M)))`
-  over a batch of loops (float64, CPU); by default C = "gram" (the Gram/Cholesky
-  compression, for noisy records such as these) and M = "alternation"; choose with
-  `--compression qr` and `--method variable_projection`; and
+  over a batch of loops (float64, CPU); by default C = "gram" (the Gram-tensor
+  route, for noisy records such as these) and M = "anderson" (accelerated
+  alternation); choose with `--compression qr` and `--method alternation` or
+  `variable_projection`; and
 - NumPy: `tests/reference.py::relax_reference`, the plain full-data implementation
   (explicit regression matrices, `numpy.linalg.lstsq`), one loop at a time,
 
@@ -154,7 +155,7 @@ COLS = (
 
 _DONE = {}
 OUT = sys.stdout
-COMPRESSION, METHOD = "gram", "alternation"
+COMPRESSION, METHOD = "gram", "anderson"
 
 
 def row(label, op, pv, N, n, m, batch, np_count, min_time):
@@ -211,7 +212,7 @@ def main():
     )
     ap.add_argument("--compression", choices=("gram", "qr"), default="gram",
                     help="relax_problem(method=...) of the JAX kernel (default gram: these loops are noisy)")
-    ap.add_argument("--method", choices=("alternation", "variable_projection"), default="alternation",
+    ap.add_argument("--method", choices=("alternation", "anderson", "variable_projection"), default="anderson",
                     help="relax(method=...) of the JAX kernel")
     ap.add_argument("--json", action="store_true",
                     help="print one JSON object on stdout (the table goes to stderr)")

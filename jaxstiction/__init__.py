@@ -45,6 +45,7 @@ from ._filters import (
     lfilter as lfilter,
     step_response as step_response,
 )
+from ._gram import GramProblem as GramProblem, lag_gram as lag_gram
 from ._hammerstein import (
     CandidateFit as CandidateFit,
     fit_spline_candidates as fit_spline_candidates,

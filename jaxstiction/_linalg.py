@@ -147,10 +147,15 @@ def is_stable(a, margin=0.0):
     return ok
 
 
-def cholesky_upper(G):
+def cholesky_upper(G, tol=None):
     """Upper-triangular $R$ with $R^T R = G$ for a symmetric positive-definite `G`,
     left-looking, in pure JAX (a pivot that is not positive is clamped to the
-    smallest normal number: the caller regularises `G` first)."""
+    smallest normal number: the caller regularises `G` first).
+
+    With `tol` (for a unit-diagonal `G`), a pivot below `tol` marks a column that
+    depends on the ones before it, to rounding: its pivot is set to `1 / tol`, so a
+    solve with this factor gives that coordinate ~0 (as a dropped column) instead of
+    dividing by a rounding error."""
     n = G.shape[0]
     idx = jnp.arange(n)
     tiny = jnp.finfo(G.dtype).tiny
@@ -159,22 +164,11 @@ def cholesky_upper(G):
         col = jnp.where(idx < j, R[:, j], 0.0)  # R[:j, j]
         v = G[j, :] - col @ R  # G[j, :] - sum_{i<j} R[i, j] R[i, :]
         d = jnp.sqrt(jnp.maximum(v[j], tiny))
-        return R.at[j, :].set(jnp.where(idx >= j, v / d, 0.0))
+        if tol is not None:
+            d = jnp.where(v[j] > tol, d, 1.0 / tol)
+        return R.at[j, :].set(jnp.where(idx > j, v / d, jnp.where(idx == j, d, 0.0)))
 
     return jax.lax.fori_loop(0, n, step, jnp.zeros_like(G))
-
-
-def gram_r(A, weights, ridge=1e-13):
-    r"""The triangular factor $R$ of $\mathrm{diag}(w)^{1/2} A$ (rows weighted by
-    `weights` in {0, 1}) from its Gram matrix: one matrix product and a Cholesky
-    factorisation of the column-scaled Gram matrix plus `ridge` on its diagonal.
-
-    This forms a normal matrix, which squares the condition number. It is used only
-    where that was shown to be harmless (the relaxation's compression, see
-    `_relax.relax_problem`): there the criterion, not the coefficients, is what the
-    fit needs, and the two factorisations give the same minimum to ~1e-10 relative."""
-    Aw = A * weights[:, None]
-    return gram_cholesky(Aw.T @ Aw, ridge)
 
 
 def gram_cholesky(G, ridge=1e-13):
@@ -186,10 +180,10 @@ def gram_cholesky(G, ridge=1e-13):
     return cholesky_upper(Gs) * s[None, :]
 
 
-def spd_solve(A, b):
+def spd_solve(A, b, tol=None):
     """Solve $A x = b$ for a small symmetric positive-definite `A` by the pure-JAX
-    Cholesky factor (`cholesky_upper`) and two triangular sweeps."""
-    R = cholesky_upper(A)
+    Cholesky factor (`cholesky_upper`, with its `tol`) and two triangular sweeps."""
+    R = cholesky_upper(A, tol)
     n = A.shape[0]
     idx = jnp.arange(n)
 
