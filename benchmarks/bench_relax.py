@@ -214,6 +214,8 @@ def main():
                     help="relax_problem(method=...) of the JAX kernel (default gram: these loops are noisy)")
     ap.add_argument("--method", choices=("alternation", "anderson", "variable_projection"), default="anderson",
                     help="relax(method=...) of the JAX kernel")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="PRNG seed of the first loop (loop i uses seed + i; default 0)")
     ap.add_argument("--json", action="store_true",
                     help="print one JSON object on stdout (the table goes to stderr)")
     args = ap.parse_args()
@@ -237,9 +239,9 @@ def main():
         file=OUT,
     )
     t0 = time.perf_counter()
-    op, pv = simulate(max(max(batches), base["batch"]), max(Ns))
+    op, pv = simulate(max(max(batches), base["batch"]), max(Ns), seed=args.seed)
     print(
-        f"simulated {op.shape[0]} paper_sim-like loops of {op.shape[1]} samples "
+        f"simulated {op.shape[0]} paper_sim-like loops of {op.shape[1]} samples (seeds {args.seed}..) "
         f"in {time.perf_counter() - t0:.1f} s\n",
         file=OUT,
     )

@@ -153,10 +153,14 @@ class GramProblem(eqx.Module):
         r"""The system $[[I, -c], [-c^T, t]]\,[\alpha; x] = [-r_y; v_2]$ by its Schur
         complement: $(t - c^T c)\,x = v_2 - c^T r_y$, $\alpha = c\,x - r_y$."""
         x = self.solve(tbb - cb.T @ cb, v2 - cb.T @ self.ry, ridge)
-        return self.Sy @ (cb @ x - self.ry), x
+        alpha = cb @ x - self.ry
+        # the least-squares criterion at the solution: y'y - theta'X'y
+        crit = self.rr + alpha @ self.ry - x @ v2
+        return self.Sy @ alpha, x, crit
 
     def solve_ab(self, beta, ridge):
-        r"""Step (16), unknowns $(a, b)$ for fixed $\beta$: $X = [-Y,\ \sum_j \beta_j \Phi_{\cdot j}]$."""
+        r"""Step (16), unknowns $(a, b)$ for fixed $\beta$: $X = [-Y,\ \sum_j \beta_j
+        \Phi_{\cdot j}]$; also the criterion (sum of squares) at the solution."""
         n = self.order
         g = self.S_inv @ beta
         cb = self.C @ g
@@ -168,7 +172,7 @@ class GramProblem(eqx.Module):
         p = self.num_params
         cb = self.Cb @ b
         tbb = (jnp.outer(b, b).reshape(-1) @ self.Tb).reshape(p, p)
-        a, g = self._schur(cb, tbb, b @ self.rphi, ridge)
+        a, g, _ = self._schur(cb, tbb, b @ self.rphi, ridge)
         return a, self.S @ g
 
     @staticmethod

@@ -127,11 +127,22 @@ def _linear_part(beta, prob, ridge=1e-14):
     r"""Step (16): unknowns `(a, b)` for fixed `beta`: $Z T_b(\beta) = [-Y, \Phi_k \beta]$."""
     n, p = prob.order, prob.num_params
     if isinstance(prob, GramProblem):
-        return prob.solve_ab(beta, ridge)
+        return prob.solve_ab(beta, ridge)[:2]
     Ry = prob.R[:, :n]
     Rphi = prob.R[:, n:].reshape(-1, n, p)
     th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,j->ik", Rphi, beta)], axis=1), prob.r, ridge)
     return th[:n], th[n:]
+
+
+def _sweep_and_loss(model: ARXHammerstein, prob, ridge=1e-14):
+    """`relax_sweep` and the criterion (14) of its result (on the Gram route, read
+    off step (16)'s solve)."""
+    if isinstance(prob, GramProblem):
+        _, beta = prob.solve_a_beta(model.b, ridge)
+        a, b, crit = prob.solve_ab(beta, ridge)
+        return _normalise(a, b, beta, prob.cov), crit / prob.count
+    new = relax_sweep(model, prob, ridge)
+    return new, relax_loss(new, prob)
 
 
 def relax_sweep(model: ARXHammerstein, prob, ridge=1e-14) -> ARXHammerstein:
@@ -211,13 +222,9 @@ def _anderson(prob, model: ARXHammerstein, steps: int, memory: int, rtol, atol):
     dtype = model.b.dtype
     zeros_hist = jnp.zeros((memory, n), dtype)
 
-    def sweep(b):
-        return relax_sweep(ARXHammerstein(a=model.a, b=b, beta=model.beta), pr)
-
     def body(st):
         k, b, g_prev, f_prev, dF, dG, _, best, best_loss = st
-        m = sweep(b)
-        loss = relax_loss(m, pr)
+        m, loss = _sweep_and_loss(ARXHammerstein(a=model.a, b=b, beta=model.beta), pr)
         g = m.b
         f = g - b
         done = jnp.all(jnp.abs(f) <= atol + rtol * jnp.abs(g))
@@ -246,8 +253,6 @@ def _anderson(prob, model: ARXHammerstein, steps: int, memory: int, rtol, atol):
     def step(c):
         st, count = c
         new, inc = body(st)
-        # a member already done keeps its state (the loop runs while any member runs)
-        new = jax.tree.map(lambda a_, b_: jnp.where(st[6], b_, a_), new, st)
         return new, count + inc
 
     inf = jnp.asarray(jnp.inf, dtype)
