@@ -297,7 +297,8 @@ def relax(
       small Cholesky solve, ~1.5–2 ms) costs more than the sweeps it saves at N =
       1500, n = 10, m = 6, so it is not the default; see `benchmarks/bench_relax.py`.
 
-    `num_steps` counts every step: accelerated or projection steps and sweeps.
+    `num_steps` counts every step, accelerated or projection steps and sweeps, and
+    never exceeds `max_steps` (the accelerator takes at most half of them).
 
     Never raises: a fit that has not converged within `max_steps` returns
     `result = RESULTS.max_steps_reached`, which is safe under `vmap`.
@@ -308,26 +309,30 @@ def relax(
         init = relax_init(prob)
         # Paper's initialisation: first step (15) with B = q^-1.
         init = relax_sweep(init, prob)
+    # Every method gets `max_steps` steps in all: the accelerator's share (at most
+    # half) is taken off the finishing alternation's.
     if method == "variable_projection":
+        pre = min(projection_steps, max_steps // 2)
         beta = jax.lax.stop_gradient(init.beta)
         pr = jax.lax.stop_gradient(prob)
         red = pr if isinstance(pr, GramProblem) else GramProblem.of_qr(pr)
-        beta = jax.lax.fori_loop(0, projection_steps, lambda _, bt: _varpro_step(bt, red), beta)
+        beta = jax.lax.fori_loop(0, pre, lambda _, bt: _varpro_step(bt, red), beta)
         a, b = _linear_part(beta, pr)
         start = _normalise(a, b, beta, pr.cov)
         better = relax_loss(start, pr) <= relax_loss(jax.lax.stop_gradient(init), pr)
         init = jax.tree.map(lambda s_, i: jnp.where(better, s_, i), start, init)
-        extra = jnp.asarray(projection_steps)
+        extra = jnp.asarray(pre)
     elif method == "anderson":
-        init, extra = _anderson(prob, init, anderson_steps, anderson_memory, rtol, atol)
+        pre = min(anderson_steps, max_steps // 2)
+        init, extra = _anderson(prob, init, pre, anderson_memory, rtol, atol)
     else:
-        extra = jnp.asarray(0)
+        pre, extra = 0, jnp.asarray(0)
     sol = optx.fixed_point(
         lambda m, pr: relax_sweep(m, pr),
         optx.FixedPointIteration(rtol=rtol, atol=atol),
         init,
         prob,
-        max_steps=max_steps,
+        max_steps=max_steps - pre,
         adjoint=adjoint,
         throw=False,
     )
