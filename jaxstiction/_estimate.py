@@ -357,7 +357,9 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     xs, wbs, ds = jnp.broadcast_to(x_lin, (L, N)), jnp.broadcast_to(w_est, (L, N)), jnp.arange(1, L + 1)
     if settings.use_physical:
         S_db = jnp.where(jnp.isfinite(S), S, 0.0) * jnp.asarray(DEADBAND_WIDTHS, dtype)
-        x_db, wb_db = jax.vmap(lambda width: valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count))(S_db)
+        x_db, wb_db, _ = jax.vmap(lambda width: valve_from(op, width, 0.0, w_est, pset.burn_in, -1, pset.init_count))(
+            S_db
+        )
         xs = jnp.concatenate([xs, scale_input(x_db, lo, hi)])
         wbs = jnp.concatenate([wbs, wb_db])
         ds = jnp.concatenate([ds, jnp.full((len(DEADBAND_WIDTHS),), delay_ph)])

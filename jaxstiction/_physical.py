@@ -70,34 +70,56 @@ def _arx_design(x, y, order: int, delay):
     return jnp.concatenate([-lagged(y, order), lagged(xd, order), jnp.ones((y.shape[0], 1), y.dtype)], axis=1)
 
 
-def arx_loss(x, y, weights, order: int, delays, max_delay: int):
-    """Mean squared one-step error of the ARX model $A y = q^{-d}B x$ (`weights` in
-    {0, 1}) for each delay $d$ in `delays` (all at most `max_delay`).
+def arx_loss(x, y, weights, order: int, delays, max_delay: int, start=0):
+    """Mean squared one-step error of the ARX model $A y = q^{-d}B x$ for each delay
+    $d$ in `delays` (all at most `max_delay`), over the samples with `weights` (in
+    {0, 1}) on and index at least `start` (and late enough for every lag).
 
     The grid search needs the criterion only, never the coefficients, so it is read
     off the triangular factor of the augmented matrix `[X, y]`: its last diagonal
     entry is the residual norm. The factor comes from the column-scaled Gram matrix
-    (`_linalg.gram_cholesky`: one matrix product and a small Cholesky), ~4x cheaper per
-    grid point than the Householder QR of the tall matrix. With `x` and `y` scaled
-    to unit range the Gram matrix is well enough conditioned that the criterion
-    agrees with the QR least-squares residual to ~1e-11 relative (tested against a
-    NumPy `lstsq` reference), far below the differences the search ranks.
+    (`_linalg.gram_cholesky`, a small Cholesky). With `x` and `y` scaled to unit range
+    the Gram matrix is well enough conditioned that the criterion agrees with the QR
+    least-squares residual to ~1e-9 relative (tested against a NumPy `lstsq`
+    reference), far below the differences the search ranks.
 
     The delays share one Gram matrix: that of `[-y lags, x lags 1..order+max_delay-1,
     1, y]`, from which each delay's rows and columns are picked (the regressors of
     delay $d$ are the output lags and input lags $d..d+$`order`$-1$). Samples before
-    every lag exists are not scored, so the pick is exact."""
+    every lag exists are not scored, so the pick is exact.
+
+    Only the input's columns change from one grid point to the next (a valve path
+    and its first move, `start`), so the block of the output columns `[-y lags, 1,
+    y]` is read off suffix sums over the samples, which do not depend on `x` (under
+    `vmap` over grid points they are computed once), and only the products with the
+    input lags are formed per point: about a fifth of the memory traffic of forming
+    the whole lagged matrix per point, which bounded the grid's speed."""
+    N = y.shape[0]
     n_x = order + max_delay - 1
-    A = jnp.concatenate([-lagged(y, order), lagged(x, n_x), jnp.ones((y.shape[0], 1), y.dtype), y[:, None]], axis=1)
-    w = weights * (jnp.arange(y.shape[0]) >= order + max(3, max_delay - 1))
-    Aw = A * w[:, None]
-    G = Aw.T @ Aw
+    w0 = weights * (jnp.arange(N) >= order + max(3, max_delay - 1))
+    Y = jnp.concatenate([-lagged(y, order), jnp.ones((N, 1), y.dtype), y[:, None]], axis=1)
+    YY = jnp.cumsum((w0[:, None, None] * Y[:, :, None] * Y[:, None, :])[::-1], axis=0)[::-1]
+    YY = jnp.concatenate([YY, jnp.zeros((1,) + YY.shape[1:], YY.dtype)])  # suffix sums; row N: none
+    lo = jnp.clip(jnp.asarray(start), 0, N)
+    G_yy = YY[lo]
+    w = w0 * (jnp.arange(N) >= lo)
+    X = lagged(x, n_x)
+    Xw = X * w[:, None]
+    G_xy = Xw.T @ Y
+    G_xx = Xw.T @ X
+    k = order
+    G = jnp.block([
+        [G_yy[:k, :k], G_xy[:, :k].T, G_yy[:k, k:]],
+        [G_xy[:, :k], G_xx, G_xy[:, k:]],
+        [G_yy[k:, :k], G_xy[:, k:].T, G_yy[k:, k:]],
+    ])
     ys = jnp.arange(order)
     tail = jnp.array([order + n_x, order + n_x + 1])
+    count = jnp.sum(w)
 
     def one(d):
         idx = jnp.concatenate([ys, order + d - 1 + jnp.arange(order), tail])
-        return gram_cholesky(G[idx][:, idx])[-1, -1] ** 2 / jnp.sum(w)
+        return gram_cholesky(G[idx][:, idx])[-1, -1] ** 2 / count
 
     return jax.vmap(one)(jnp.atleast_1d(delays))
 
@@ -105,8 +127,8 @@ def arx_loss(x, y, weights, order: int, delays, max_delay: int):
 def valve_from(op, S, J, weights, burn: int, start, count: int):
     """Kano valve position for `op` from candidate initial state number `start` of
     `Kano.initial_states(op[:8 * count], count)` (`start = -1`, the last, is the
-    default start: at rest at `op[0]`, last travel up), and the weights of the samples from its first
-    move on (plus `burn` samples of linear transient).
+    default start: at rest at `op[0]`, last travel up), the weights of the samples from its first
+    move on (plus `burn` samples of linear transient), and the index they start at.
 
     Before its first move the valve rests at an unknown position; those samples are
     not scored. The mean loss over the scored samples is the criterion, so the
@@ -120,7 +142,7 @@ def valve_from(op, S, J, weights, burn: int, start, count: int):
     x = blk(op, state)
     moved = x != x[0]
     first = jnp.where(jnp.any(moved), jnp.argmax(moved), op.shape[0])
-    return x, weights * (jnp.arange(op.shape[0]) >= first + burn)
+    return x, weights * (jnp.arange(op.shape[0]) >= first + burn), first + burn
 
 
 def _delay(x, d):
@@ -244,9 +266,9 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
 
     def arx_at(s, j, ds, cands):
         def one(c):
-            x, wb = valve_from(op, s, j, weights, settings.burn_in, c, settings.init_count)
+            x, wb, first = valve_from(op, s, j, weights, settings.burn_in, c, settings.init_count)
             x = scale_input(x, lo, hi)
-            return charged(arx_loss(x, y, wb, settings.arx_order, ds, settings.max_delay), wb)
+            return charged(arx_loss(x, y, weights, settings.arx_order, ds, settings.max_delay, first), wb)
 
         loss = jax.vmap(one)(cands)  # (cands, delays)
         flat = jnp.argmin(loss.ravel())
@@ -323,7 +345,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     delay_k = jnp.repeat(delay, settings.polish_starts)
 
     def fine(s, j, delay, c):
-        x, wb = valve_from(op, s, j, weights, settings.burn_in, c, settings.init_count)
+        x, wb, _ = valve_from(op, s, j, weights, settings.burn_in, c, settings.init_count)
         x = scale_input(x, lo, hi)
         m, cd, res = fit_oe(x, y, wb, settings.order, delay, settings.max_delay, settings.oe_steps)
         v = charged(jnp.sum((wb * (y - m.simulate(x, settings.max_delay))) ** 2) / jnp.sum(wb), wb)
@@ -342,7 +364,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     step = 2.0 / (settings.final - 1)
     # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
     # corrected for residual autocorrelation (output-error residuals are coloured).
-    x, wb = valve_from(op, Sf[b], Jf[b], weights, settings.burn_in, start, settings.init_count)
+    x, wb, _ = valve_from(op, Sf[b], Jf[b], weights, settings.burn_in, start, settings.init_count)
     x = scale_input(x, lo, hi)
     e = wb * (y - models_at(models, b).simulate(x, settings.max_delay))
     rho = jnp.clip(jnp.sum(e[1:] * e[:-1]) / jnp.sum(e**2), 0.0, 0.99)

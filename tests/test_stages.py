@@ -95,23 +95,41 @@ def test_arx_criterion_equals_numpy_lstsq(sticky):
     """The grid's ARX criterion, read off a Gram-matrix Cholesky factor, equals the
     residual of NumPy's `lstsq` (SVD) on the same weighted regression to 1e-9
     relative, over (S, J) points from no stiction to a band of a quarter of the OP range,
-    and every delay: the normal matrix is safe here."""
+    and every delay: the normal matrix is safe here. The sample window given as a
+    `start` index (as the grid passes it: output columns from suffix sums) or inside
+    the weights (with gaps too) gives the same criterion, under `vmap` as well."""
     op, y, u = sticky
+    N = y.shape[0]
     w = jnp.ones_like(y)
+    gaps = w.at[300:420].set(0.0).at[N - 50 :].set(0.0)  # an excluded stretch and padding
     lo, hi = op.min(), op.max()
-    for s, j in [(0.0, 0.0), (3.0, 1.0), (10.0, 2.0), (20.0, 20.0), (25.0, 5.0)]:
-        x, wb = valve_from(op, s, j, w, 10, -1, 3)
-        x = js.scale_input(x, lo, hi)
-        assert float(jnp.sum(wb)) > 100
-        for order in (4, 8):
-            # every delay from one shared Gram matrix, each against its own lstsq
-            got = np.asarray(arx_loss(x, y, wb, order, jnp.arange(1, 4), 3))
-            for d in (1, 2, 3):
-                X = np.asarray(_arx_design(x, y, order, d))
-                m = np.asarray(wb) * (np.arange(y.shape[0]) >= order + 3)
-                th = np.linalg.lstsq(X * m[:, None], np.asarray(y) * m, rcond=None)[0]
-                want = np.sum((m * (np.asarray(y) - X @ th)) ** 2) / m.sum()
-                np.testing.assert_allclose(got[d - 1], want, rtol=1e-9)
+    for base in (w, gaps):
+        for s, j in [(0.0, 0.0), (3.0, 1.0), (10.0, 2.0), (20.0, 20.0), (25.0, 5.0)]:
+            x, wb, first = valve_from(op, s, j, base, 10, -1, 3)
+            x = js.scale_input(x, lo, hi)
+            assert float(jnp.sum(wb)) > 100
+            for order in (4, 8):
+                # every delay from one shared Gram matrix, each against its own lstsq
+                got = np.asarray(arx_loss(x, y, base, order, jnp.arange(1, 4), 3, first))
+                inside = np.asarray(arx_loss(x, y, wb, order, jnp.arange(1, 4), 3))
+                np.testing.assert_allclose(inside, got, rtol=1e-9)
+                for d in (1, 2, 3):
+                    X = np.asarray(_arx_design(x, y, order, d))
+                    m = np.asarray(wb) * (np.arange(N) >= order + 3)
+                    th = np.linalg.lstsq(X * m[:, None], np.asarray(y) * m, rcond=None)[0]
+                    want = np.sum((m * (np.asarray(y) - X @ th)) ** 2) / m.sum()
+                    np.testing.assert_allclose(got[d - 1], want, rtol=1e-9)
+    # a grid of valve paths under vmap, the output block shared, equals point by point
+    S = jnp.array([0.0, 3.0, 10.0, 25.0])
+    J = jnp.array([0.0, 1.0, 2.0, 5.0])
+
+    def at(s, j):
+        x, wb, first = valve_from(op, s, j, gaps, 10, -1, 3)
+        return arx_loss(js.scale_input(x, lo, hi), y, gaps, 4, jnp.arange(1, 4), 3, first)
+
+    batched = np.asarray(jax.jit(jax.vmap(at))(S, J))
+    for i in range(S.shape[0]):
+        np.testing.assert_allclose(batched[i], np.asarray(at(S[i], J[i])), rtol=1e-12)
 
 
 def test_grad_through_relaxation_reduction_and_polish(sticky):
