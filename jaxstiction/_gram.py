@@ -139,8 +139,8 @@ class GramProblem(eqx.Module):
     def of_blocks(Gyy, C, T, ry, rphi, rr, cov, count) -> "GramProblem":
         """From the Gram blocks in the model's own coordinates."""
         n, p = C.shape[1], C.shape[2]
-        S, S_inv = _whitening(T[0, :, 0, :], 1e-12)  # the lag-1 spline regressors
-        Sy, Sy_inv = _whitening(Gyy, 0.0)  # exact: the sweeps take Y^T Y = I
+        S, S_inv = whitening(T[0, :, 0, :], 1e-12)  # the lag-1 spline regressors
+        Sy, Sy_inv = whitening(Gyy, 0.0)  # exact: the sweeps take Y^T Y = I
         C = jnp.einsum("akj,ab,jm->bkm", C, Sy, S)
         T = jnp.einsum("kjlm,ja,mb->kalb", T, S, S)
         return GramProblem(C=C, T=T, Cb=jnp.transpose(C, (0, 2, 1)),
@@ -224,7 +224,7 @@ class GramProblem(eqx.Module):
         return self.S_inv.T @ (MtM - XtM.T @ W) @ self.S_inv, self.S_inv.T @ Mte
 
 
-def _whitening(G, ridge):
+def whitening(G, ridge):
     """`(S, S_inv)` with $S^T G S \approx I$: $S = D^{-1} R^{-1}$, $R^T R$ the
     unit-diagonal form of `G` plus `ridge` (all-zero columns, masked knots, stay 0)."""
     d = jnp.sqrt(jnp.diag(G))

@@ -19,6 +19,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._filters import fitness, lfilter, steady_state
+from ._gram import whitening
 from ._linalg import HouseholderQR, is_stable
 from ._reduce import asymptotic_weight, LowOrder, reduce_model, ReductionSolution
 from ._relax import relax, relax_problem, RelaxSolution
@@ -160,8 +161,15 @@ def fit_candidate(y, u, h, knots, knot_mask, weights, mask, settings: SplineSett
     the estimation samples)."""
     n, D = settings.arx_order, settings.max_delay
     phi = hysteresis_regressors(u, h, knots, knot_mask)
-    prob = relax_problem(y, phi, n, weights, method=settings.compression)
+    # The relaxation runs on whitened spline regressors (phi S has an identity Gram
+    # matrix on the estimation samples; masked knots stay zero columns). The basis's
+    # own coordinates are so badly conditioned (coefficients of 1e4 that cancel) that
+    # the sweeps' rounding kept the alternation from settling with many knots (CHEM23's
+    # 10-knot candidate ran to the step cap). The valve output phi beta is unchanged.
+    S, _ = whitening((phi * weights[:, None]).T @ phi, 1e-12)
+    prob = relax_problem(y, phi @ S, n, weights, method=settings.compression)
     rsol = relax(prob, max_steps=settings.relax_steps)
+    rsol = eqx.tree_at(lambda r: r.model.beta, rsol, S @ rsol.model.beta)
     hi = rsol.model
     x = phi @ hi.beta
     count = jnp.sum(weights)
