@@ -51,6 +51,11 @@ def relax_problem(y, phi, order: int, weights=None, *, method: str = "qr"):
 
     `weights` (time,) in {0, 1} drops samples (padding of ragged batches).
 
+    Pass well-conditioned regressors: with many knots the spline basis's own
+    coordinates are so badly conditioned that the sweeps' rounding can keep the
+    alternation from settling. The estimator passes `phi @ S` with `S` from
+    `_gram.whitening` of their Gram matrix, and maps the coefficients back.
+
     `method`: how the data are compressed, once per loop:
 
     - `"qr"` (default): $[Z\ y]$ reduced to its triangular factor by a Householder QR
