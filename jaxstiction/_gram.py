@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._linalg import cholesky_upper, solve_upper, spd_solve
+from ._linalg import gram_cholesky, solve_upper, spd_solve
 
 
 _DROP = 1e-10  # pivot (unit-diagonal scale) below which a column counts as dependent
@@ -158,13 +158,17 @@ class GramProblem(eqx.Module):
         crit = self.rr + alpha @ self.ry - x @ v2
         return self.Sy @ alpha, x, crit
 
+    def _blocks16(self, beta):
+        r"""Step (16)'s blocks for fixed $\beta$ (whitened, $\gamma$): $Y^T M$ and $M^T M$
+        with $M = \sum_j \gamma_j \Phi_{\cdot j}$, and $\gamma$."""
+        n = self.order
+        g = self.S_inv @ beta
+        return self.C @ g, (jnp.outer(g, g).reshape(-1) @ self.Tbeta).reshape(n, n), g
+
     def solve_ab(self, beta, ridge):
         r"""Step (16), unknowns $(a, b)$ for fixed $\beta$: $X = [-Y,\ \sum_j \beta_j
         \Phi_{\cdot j}]$; also the criterion (sum of squares) at the solution."""
-        n = self.order
-        g = self.S_inv @ beta
-        cb = self.C @ g
-        tbb = (jnp.outer(g, g).reshape(-1) @ self.Tbeta).reshape(n, n)
+        cb, tbb, g = self._blocks16(beta)
         return self._schur(cb, tbb, self.rphi @ g, ridge)
 
     def solve_a_beta(self, b, ridge):
@@ -197,9 +201,7 @@ class GramProblem(eqx.Module):
 
     def _normal16(self, beta):
         n = self.order
-        g = self.S_inv @ beta
-        cb = self.C @ g
-        tbb = (jnp.outer(g, g).reshape(-1) @ self.Tbeta).reshape(n, n)
+        cb, tbb, g = self._blocks16(beta)
         G = jnp.block([[jnp.eye(n, dtype=cb.dtype), -cb], [-cb.T, tbb]])
         return G, jnp.concatenate([-self.ry, self.rphi @ g]), g
 
@@ -225,10 +227,9 @@ class GramProblem(eqx.Module):
 
 
 def whitening(G, ridge):
-    """`(S, S_inv)` with $S^T G S \approx I$: $S = D^{-1} R^{-1}$, $R^T R$ the
-    unit-diagonal form of `G` plus `ridge` (all-zero columns, masked knots, stay 0)."""
-    d = jnp.sqrt(jnp.diag(G))
-    d = jnp.where(d > 0, d, 1.0)
-    R = cholesky_upper(G / (d[:, None] * d[None, :]) + ridge * jnp.eye(G.shape[0], dtype=G.dtype))
-    R_inv = jax.vmap(solve_upper, in_axes=(None, 1), out_axes=1)(R, jnp.eye(G.shape[0], dtype=R.dtype))
-    return R_inv / d[:, None], R * d[None, :]
+    """`(S, S_inv)` with $S^T G S \approx I$: `S_inv` the Cholesky factor of the
+    unit-diagonal form of `G` plus `ridge`, scaled back (`_linalg.gram_cholesky`), `S`
+    its inverse (all-zero columns, masked knots, stay 0)."""
+    S_inv = gram_cholesky(G, ridge)
+    S = jax.vmap(solve_upper, in_axes=(None, 1), out_axes=1)(S_inv, jnp.eye(G.shape[0], dtype=G.dtype))
+    return S, S_inv

@@ -140,29 +140,26 @@ def _linear_part(beta, prob, ridge=1e-14):
 
 
 def _sweep_and_loss(model: ARXHammerstein, prob, ridge=1e-14):
-    """`relax_sweep` and the criterion (14) of its result (on the Gram route, read
-    off step (16)'s solve)."""
+    """One relaxation sweep and the criterion (14) of its result (on the Gram route
+    read off step (16)'s solve; where only the model is used, jit drops the rest)."""
+    n, p = prob.order, prob.num_params
+    # (15): unknowns [a, beta] for fixed b: Z T_a(b) = [-Y, sum_k b_k Phi_k].
     if isinstance(prob, GramProblem):
         _, beta = prob.solve_a_beta(model.b, ridge)
-        a, b, crit = prob.solve_ab(beta, ridge)
+        a, b, crit = prob.solve_ab(beta, ridge)  # (16)
         return _normalise(a, b, beta, prob.cov), crit / prob.count
-    new = relax_sweep(model, prob, ridge)
+    Ry = prob.R[:, :n]
+    Rphi = prob.R[:, n:].reshape(-1, n, p)  # columns indexed by (lag k, basis j)
+    th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,k->ij", Rphi, model.b)], axis=1), prob.r, ridge)
+    beta = th[n:]
+    a, b = _linear_part(beta, prob, ridge)  # (16)
+    new = _normalise(a, b, beta, prob.cov)
     return new, relax_loss(new, prob)
 
 
 def relax_sweep(model: ARXHammerstein, prob, ridge=1e-14) -> ARXHammerstein:
     """One relaxation sweep: step (15), then step (16), then gain normalisation."""
-    n, p = prob.order, prob.num_params
-    # (15): unknowns [a, beta] for fixed b: Z T_a(b) = [-Y, sum_k b_k Phi_k].
-    if isinstance(prob, GramProblem):
-        a, beta = prob.solve_a_beta(model.b, ridge)
-    else:
-        Ry = prob.R[:, :n]
-        Rphi = prob.R[:, n:].reshape(-1, n, p)  # columns indexed by (lag k, basis j)
-        th = _lstsq(jnp.concatenate([-Ry, jnp.einsum("ikj,k->ij", Rphi, model.b)], axis=1), prob.r, ridge)
-        beta = th[n:]
-    a, b = _linear_part(beta, prob, ridge)  # (16)
-    return _normalise(a, b, beta, prob.cov)
+    return _sweep_and_loss(model, prob, ridge)[0]
 
 
 class RelaxSolution(eqx.Module):

@@ -443,39 +443,31 @@ def test_gram_and_qr_compressions_give_the_same_minimum(loops):
         np.testing.assert_allclose(g.model.a, q.model.a, atol=1e-6)
 
 
-def test_anderson_reaches_the_alternation_minimum(loops, reference_fit):
+@pytest.mark.parametrize("compress, method", [("gram", "anderson"), ("qr", "variable_projection")])
+def test_accelerated_methods_reach_the_alternation_minimum(loops, reference_fit, compress, method):
     """Anderson-accelerated alternation (Gram route, as the kernel benchmark runs it)
-    ends at the alternation's minimum, the NumPy reference's on the first loop, in
-    fewer sweeps (its own steps counted); jit-compiled and vmapped alike."""
+    and variable projection then alternation (QR route) end at the alternation's
+    fixed point (same criterion, b and valve output as the alternation alone, and the
+    NumPy reference's criterion on the first loop) in fewer steps (their own steps
+    counted)."""
     for i, (y, phi) in enumerate(loops):
-        aa = _fit_with(y, phi, "gram", "anderson")
-        alt = _fit_with(y, phi, "gram", "alternation")
-        assert _ok(aa.result) and _ok(alt.result)
-        np.testing.assert_allclose(float(aa.loss), float(alt.loss), rtol=1e-9)
-        np.testing.assert_allclose(np.asarray(phi @ aa.model.beta), np.asarray(phi @ alt.model.beta), atol=1e-5)
-        np.testing.assert_allclose(aa.model.b, alt.model.b, atol=1e-5)
-        assert int(aa.num_steps) < int(alt.num_steps)
+        fast = _fit_with(y, phi, compress, method)
+        alt = _fit_with(y, phi, compress, "alternation")
+        assert _ok(fast.result) and _ok(alt.result)
+        np.testing.assert_allclose(float(fast.loss), float(alt.loss), rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(phi @ fast.model.beta), np.asarray(phi @ alt.model.beta), atol=1e-5)
+        np.testing.assert_allclose(fast.model.b, alt.model.b, atol=1e-5)
+        assert int(fast.num_steps) < int(alt.num_steps)
         if i == 0:
-            np.testing.assert_allclose(float(aa.loss), reference_fit.loss, rtol=1e-8)
+            np.testing.assert_allclose(float(fast.loss), reference_fit.loss, rtol=1e-8)
+
+
+def test_anderson_vmapped_equals_single_calls(loops):
+    """Anderson acceleration under `vmap` (members stopping at different steps) gives
+    each member's single-call criterion."""
     ys = jnp.stack([y for y, _ in loops])
     phis = jnp.stack([phi for _, phi in loops])
     one = lambda y, phi: relax(relax_problem(y, phi, ORDER, method="gram"), method="anderson", **TIGHT)
     batched = jax.vmap(one)(ys, phis)
     for i, (y, phi) in enumerate(loops):
         np.testing.assert_allclose(float(batched.loss[i]), float(_fit_with(y, phi, "gram", "anderson").loss), rtol=1e-9)
-
-
-def test_variable_projection_reaches_the_alternation_minimum(loops, reference_fit):
-    """Variable projection then alternation ends at the relaxation's fixed point
-    (same criterion, b and valve output as the alternation alone and as the NumPy
-    reference) in fewer steps (projection steps included)."""
-    for i, (y, phi) in enumerate(loops):
-        lm = _fit_with(y, phi, "qr", "variable_projection")
-        alt = _fit_with(y, phi, "qr", "alternation")
-        assert _ok(lm.result) and _ok(alt.result)
-        np.testing.assert_allclose(float(lm.loss), float(alt.loss), rtol=1e-9)
-        np.testing.assert_allclose(np.asarray(phi @ lm.model.beta), np.asarray(phi @ alt.model.beta), atol=1e-5)
-        np.testing.assert_allclose(lm.model.b, alt.model.b, atol=1e-5)
-        assert int(lm.num_steps) < int(alt.num_steps)
-        if i == 0:
-            np.testing.assert_allclose(float(lm.loss), reference_fit.loss, rtol=1e-8)
