@@ -77,6 +77,7 @@ class AbstractBlock(eqx.Module):
         from the opening input samples `u_open` (see the module docstring)."""
         return jax.tree.map(lambda t: jnp.asarray(t)[None], self.init(jnp.asarray(u_open)[0]))
 
+    @eqx.filter_jit  # compiled once per block structure, not once per eager call
     def __call__(self, u: Float[Array, " time"], state=None) -> Float[Array, " time"]:
         """The block's output over a whole signal `u`, from `state` (default: at rest
         at `u[0]`)."""

@@ -29,6 +29,7 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import equinox as eqx
@@ -183,6 +184,12 @@ def _paths(op, blocks) -> jnp.ndarray:
     return jnp.stack(out)
 
 
+@eqx.filter_jit
+def _paths_stacked(op, blocks):
+    """Valve paths of blocks stacked along a leading axis (one program per block type)."""
+    return jax.vmap(lambda b: b(op))(blocks)
+
+
 @jax.jit
 def _paths_kano(op, S, J):
     return jax.vmap(lambda s, j: Kano(s, j)(op))(S, J)
@@ -197,7 +204,7 @@ def _family_paths(op_j, fams):
             J = jnp.asarray([b.J for b in blocks])
             P = _paths_kano(op_j, S, J)
         elif name in ("deadband", "actuator_lag", "valve_characteristic", "saturation"):
-            P = jax.jit(jax.vmap(lambda b: b(op_j)))(_stack(blocks))
+            P = _paths_stacked(op_j, _stack(blocks))
         else:
             P = _paths(op_j, blocks)
         rows.append(P)
@@ -388,7 +395,14 @@ def _bootstrap_noise(c, d, residual, n_est: int, key, count: int, n: int) -> lis
     samples (the first 20 skipped), filtered by $C/D$ after a 300-sample warm-up."""
     c, d = jnp.asarray(c), jnp.asarray(d)
     sig = float(np.std(np.asarray(lfilter(d, c, jnp.asarray(residual)))[20:n_est]))
-    return [np.asarray(lfilter(c, d, jr.normal(jr.fold_in(key, b), (n + 300,)) * sig))[300:] for b in range(count)]
+    return list(np.asarray(_noise_records(c, d, key, sig, count, n)))
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _noise_records(c, d, key, sig, count: int, n: int):
+    """(count, n) records of $C/D$ noise: record `b` from `fold_in(key, b)`, 300-sample warm-up dropped."""
+    e = jax.vmap(lambda b: jr.normal(jr.fold_in(key, b), (n + 300,)))(jnp.arange(count)) * sig
+    return jax.vmap(lambda x: lfilter(c, d, x))(e)[:, 300:]
 
 
 def _prove(model: LoopModel, op, pv, n_est: int, before: dict):

@@ -15,6 +15,7 @@ def _pad(b, a):
     return b, a, n
 
 
+@jax.jit
 def lfilter(b, a, x: Float[Array, " time"], zi=None) -> Float[Array, " time"]:
     r"""$y = \frac{B(q)}{A(q)} x$ with $a_0 = 1$ (direct form II transposed).
 

@@ -185,6 +185,7 @@ class NoiseModel(eqx.Module):
     result: optx.RESULTS
 
 
+@eqx.filter_jit  # one program per shape and order, also when called eagerly
 def fit_noise_model(v, weights, *, order: int = 1, max_steps=100) -> NoiseModel:
     r"""Low-order ARMA noise model $v = \frac{C}{D} e$ (23) for the output-error
     residual `v`, by Gauss–Newton on the prediction error $\varepsilon = \frac{D}{C} v$,

@@ -2,7 +2,9 @@
 candidate grid, and end-to-end verdicts on concealed-effect scenarios."""
 
 import json
+import logging
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -128,6 +130,18 @@ def test_verdicts(case, expected):
     else:
         assert not [f for f in d.findings if f.accepted]
     assert json.loads(json.dumps(d.to_json()))["verdict"] == expected
+
+
+def test_repeat_diagnosis_compiles_nothing(caplog):
+    """A second diagnosis of a loop of the same shape reuses every compiled program:
+    a long process (a benchmark, a fleet) must not accumulate programs, which once
+    exhausted the process's memory maps after ~100 diagnoses."""
+    first, second = (js.make_scenario("P0", seed=s) for s in (0, 1))
+    js.diagnose(first.full.loop, first.nominal, FAST)
+    with jax.log_compiles(True), caplog.at_level(logging.DEBUG, logger="jax"):
+        js.diagnose(second.full.loop, second.nominal, FAST)
+    compiled = [r.getMessage()[:80] for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert not compiled, compiled
 
 
 def test_bad_input_one_line():
