@@ -3,6 +3,8 @@ system-identification tools score it, with the initial state estimated first."""
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax.numpy as jnp
 
@@ -42,7 +44,10 @@ def simulate_scored(model: LoopModel, op, pv, weights, settings: ScoreSettings =
     op_r, pv_r, w_r = op[idx], pv[idx], weights[idx]
     window = jnp.maximum(settings.init_min, settings.init_fraction * length)
     w_init = w_r * (t < window)
-    init = model.initial_state(op_r, pv_r, w_init, count=settings.init_count)
+    # a static bound on the window (the scored length is at most `n`): the search for
+    # the initial state runs on those samples only
+    bound = min(n, math.ceil(max(settings.init_min, settings.init_fraction * n)))
+    init = model.initial_state(op_r, pv_r, w_init, count=settings.init_count, window=bound)
     sim_r = model.simulate(op_r, init)
     fit = fitness(pv_r, sim_r, w_r)
     sim = sim_r[(t - start) % n]

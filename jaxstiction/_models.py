@@ -196,7 +196,7 @@ class LoopModel(eqx.Module):
         y = lfilter(b, a, x - self.op_offset, initial.filter) + self.pv_offset
         return self._output(y, initial.output)
 
-    def initial_state(self, op, pv, weights, *, count: int = 16) -> InitialState:
+    def initial_state(self, op, pv, weights, *, count: int = 16, window: int | None = None) -> InitialState:
         """Estimate the initial state from a record, as system-identification tools
         do before scoring a simulation.
 
@@ -206,9 +206,15 @@ class LoopModel(eqx.Module):
         simulation linearly and are found by least squares on the samples where
         `weights > 0` (typically the opening part of the record). The candidate with
         the smallest weighted error wins. Offsets and parameters are not touched.
+
+        `window` (static): when `weights` are zero from that sample on, the search
+        runs on the samples before it only: the same answer for less work.
         """
         op, pv, weights = _f(op), _f(pv), _f(weights)
         cands = self._chain_candidates(op, count)
+        if window is not None and window < op.shape[0]:
+            # every filter is causal: the samples after the last weighted one change nothing
+            op, pv, weights = op[:window], pv[:window], weights[:window]
         b, a = self.process.polynomials()
         s = b.shape[0] - 1
         add = self._output(jnp.zeros_like(op)) if self.output else 0.0  # additive output blocks

@@ -355,6 +355,20 @@ def test_initial_state_recovers_a_non_rest_start():
                                atol=1e-12)
 
 
+@pytest.mark.parametrize("window", [60, 200])
+def test_initial_state_window_changes_nothing(window):
+    """`window` only skips samples of zero weight: the same state as the whole record
+    (a noisy record, so the least squares are not exact and ties are unlikely)."""
+    op = paper_op()
+    plant = nominal_model(chain=(Kano(20.0, 2.0),), output=(Sinusoid(0.5, 40.0, 0.3),))
+    pv = plant.simulate(op) + 0.3 * jr.normal(jr.PRNGKey(3), op.shape, op.dtype)
+    w = (jnp.arange(op.shape[0]) < 50).astype(op.dtype)
+    whole = plant.initial_state(op, pv, w, count=16)
+    cut = plant.initial_state(op, pv, w, count=16, window=window)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(cut)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-10, atol=1e-10)
+
+
 def test_initial_state_without_chain_is_the_filter_state():
     # No chain: the free levels are the hold level (chain output held until it first
     # changes, here never for a non-constant op after sample 0) and the filter state,
