@@ -418,15 +418,17 @@ def _noise_records(c, d, key, sig, count: int, n: int):
     return jax.vmap(lambda x: lfilter(c, d, x))(e)[:, 300:]
 
 
-def _prove(model: LoopModel, op, pv, n_est: int, before: dict):
+def _prove(model: LoopModel, op, pv, n_est: int, before: dict, other=None):
     """A candidate model's proof: its held-out figures, its held-out simulation and
     k-step gains over `before`, and the input cross-correlation test of its
-    (AR(2)-whitened) estimation residual."""
+    (AR(2)-whitened) estimation residual, with `other` (an effect found beside it,
+    e.g. an external oscillation, in PV units) removed first."""
     after = _heldout(model, op, pv, n_est)
     gain = _diff(after["fitness"], before["fitness"])
     kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
     sim = np.asarray(_jit_scored(model, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
-    cc = cross_correlation(op[:n_est], ar_whiten((pv - sim)[:n_est], 2)[0])
+    resid = pv - sim if other is None else pv - sim - other
+    cc = cross_correlation(op[:n_est], ar_whiten(resid[:n_est], 2)[0])
     return after, gain, kgain, cc
 
 
@@ -652,6 +654,14 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
 
     findings = []
     dof = {"stiction": 2, "external_oscillation": 3}
+    # A significant external oscillation also drives OP through the controller, so an
+    # input block's residual keeps an OP-residual correlation that is the
+    # oscillation's, not the block's: the blocks' cross-correlation tests run with
+    # the oscillation (fitted to the nominal's residual) removed.
+    osc = None
+    if pvals["external_oscillation"] <= settings.alpha and T_obs["external_oscillation"] > 0:
+        amp, P, ph = _fit_sinusoid(pv - base_sim, n_est, 1.0 / max(f_best, 1e-9))
+        osc = amp * np.sin(2 * np.pi * np.arange(n) / P + ph)
     for fam in names:
         # significant: beyond the bootstrap null *and* better than the nominal itself
         sig_f = pvals[fam] <= settings.alpha and T_obs[fam] > 0
@@ -677,7 +687,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         if not sig_f:
             findings.append(Finding(fam, {**params, "interval": iv}, ev, before, before, False))
             continue
-        after, gain, kgain, cc = _prove(model, op, pv, n_est, before)
+        after, gain, kgain, cc = _prove(model, op, pv, n_est, before, osc if fam in INPUT_FAMILIES else None)
         ev.update(heldout_gain=round(gain, 3), k_step_gain=round(float(kgain), 5),
                   residual_cross_correlation_passes=cc["passes"],
                   rank_score=round(T_obs[fam] - 2 * dof.get(fam, 1), 3))

@@ -132,6 +132,17 @@ def test_verdicts(case, expected):
     assert json.loads(json.dumps(d.to_json()))["verdict"] == expected
 
 
+def test_stiction_beside_an_external_oscillation():
+    """P10 (stiction plus an external oscillation): the oscillation also drives OP
+    through the controller, so the input blocks' residual cross-correlation test
+    must run with it removed, or the stiction model fails that test and the
+    deadband passes it (seed 1 was named `deadband`)."""
+    sc = js.make_scenario("P10", seed=1)
+    d = js.diagnose(sc.full.loop, sc.nominal, FAST)
+    assert d.verdict == "stiction"
+    assert "external_oscillation" in {f.effect for f in d.findings if f.accepted}
+
+
 def test_repeat_diagnosis_compiles_nothing(caplog):
     """A second diagnosis of a loop of the same shape reuses every compiled program:
     a long process (a benchmark, a fleet) must not accumulate programs, which once
