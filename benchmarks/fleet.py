@@ -11,7 +11,8 @@ chunks of `ScreenSettings.chunk` loops per compiled call). A warm-up fleet of on
 chunk is screened first (it pays the compilation), then the small and the large
 fleet, both timed; the marginal seconds per loop are
 (t_large - t_small) / (large - small), so any fixed cost per call cancels. Also
-prints the balanced accuracy of `stiction_detected` on the fleet.
+prints the balanced accuracy of `stiction_detected` on the fleet, and the status of
+every loop that is not ok.
 """
 
 import argparse
@@ -73,7 +74,8 @@ def main():
     tnr = np.mean([not r["stiction_detected"] for r in neg])
     out = dict(seconds_warm_up=t_warm, small=args.small, large=args.large, seconds_small=t_small, seconds_large=t_large,
                marginal_seconds_per_loop=marginal, ok=sum(r["status"] == "ok" for r in res), loops=len(res),
-               balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()))
+               balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()),
+               failed={r["name"]: r["status"] for r in res if r["status"] != "ok"})
     if args.json:
         print(json.dumps(out))
         return
@@ -81,6 +83,8 @@ def main():
           f"{t_large:.1f} s")
     print(f"marginal: {marginal:.2f} s per 1500-sample loop (estimate + verdict); "
           f"{out['ok']}/{out['loops']} ok; balanced accuracy {out['balanced_accuracy']:.2f}")
+    for name, status in out["failed"].items():
+        print(f"  {name}: {status}")
 
 
 if __name__ == "__main__":
