@@ -658,10 +658,11 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     # input block's residual keeps an OP-residual correlation that is the
     # oscillation's, not the block's: the blocks' cross-correlation tests run with
     # the oscillation (fitted to the nominal's residual) removed.
+    amp, P, ph = _fit_sinusoid(pv - base_sim, n_est, 1.0 / max(f_best, 1e-9))
+    sinusoid = Sinusoid(amp, P, ph)
     osc = None
     if pvals["external_oscillation"] <= settings.alpha and T_obs["external_oscillation"] > 0:
-        amp, P, ph = _fit_sinusoid(pv - base_sim, n_est, 1.0 / max(f_best, 1e-9))
-        osc = amp * np.sin(2 * np.pi * np.arange(n) / P + ph)
+        osc = np.asarray(sinusoid(jnp.zeros(n)))  # the output block's own signal
     for fam in names:
         # significant: beyond the bootstrap null *and* better than the nominal itself
         sig_f = pvals[fam] <= settings.alpha and T_obs[fam] > 0
@@ -674,9 +675,8 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             if sig_f:
                 model = with_block((blk,), (blk(op_in_j) - om) / sx)
         elif fam == "external_oscillation":
-            amp, P, ph = _fit_sinusoid(pv - base_sim, n_est, 1.0 / max(f_best, 1e-9))
             params = {"amplitude": round(amp, 4), "period_samples": round(float(P), 3), "phase": round(ph, 4)}
-            model = eqx.tree_at(lambda m: m.output, base_model, (Sinusoid(amp, P, ph),))
+            model = eqx.tree_at(lambda m: m.output, base_model, (sinusoid,))
         else:  # drift: an integrating noise model; no simulation gain possible
             zd = np.diff(pv - base_sim)[: n_est - 1]
             Xd = np.stack([zd[1:-1], zd[:-2]], 1)
