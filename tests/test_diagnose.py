@@ -11,7 +11,8 @@ import pytest
 from test_cli import _assert_one_line_error, _csv, run
 
 import jaxstiction as js
-from jaxstiction._diagnose import _drift_stat, _quantisation, _refit_b
+from jaxstiction._diagnose import _quantisation, _refit_b
+from jaxstiction._drift import _neg_loglik, drift_noise_model, drift_test
 from jaxstiction._filters import lfilter
 from jaxstiction._locate import cross_correlation, segment_power, spectrum_lines, whiteness
 
@@ -69,11 +70,43 @@ def test_segment_power_flags_reversals():
 
 
 def test_drift_statistic_grows_with_a_random_walk():
-    rng = np.random.default_rng(4)
+    rng = np.random.default_rng(5)
     ar = np.asarray(lfilter(jnp.ones(1), jnp.asarray([1.0, -0.9]), jnp.asarray(rng.normal(size=2000))))
     walk = ar + np.cumsum(rng.normal(0, 0.3, 2000))
-    w = jnp.ones(2000)
-    assert float(_drift_stat(jnp.asarray(walk), w)) > 3 * float(_drift_stat(jnp.asarray(ar), w))
+    t_walk, a, q, s, _ = (float(v) for v in drift_test(jnp.asarray(walk)))
+    t_ar = float(drift_test(jnp.asarray(ar))[0])
+    assert t_walk > 10 and t_ar < 2
+    assert abs(a - 0.9) < 0.05 and abs(s - 1.0) < 0.1 and 0.1 < s * np.sqrt(q) < 0.6  # truth 0.9, 1, 0.3
+
+
+@pytest.mark.parametrize("a,q", [(0.9, 0.0), (0.6, 0.05), (-0.3, 1e-3)])
+def test_drift_likelihood_matches_dense_gaussian(a, q):
+    """The Kalman filter's concentrated likelihood against the dense Gaussian one
+    (a slow, obviously correct reference): y[1:] given y[0], level prior 1e7."""
+    rng = np.random.default_rng(7)
+    n = 150
+    y = np.cumsum(rng.normal(size=n)) * 0.3 + rng.normal(size=n)
+    t = np.arange(n)
+    cov = 1e7 + q * np.minimum(t[:, None], t[None, :]) + a ** np.abs(t[:, None] - t[None, :]) / (1 - a * a)
+    s01 = cov[1:, 0] / cov[0, 0]
+    mu = s01 * y[0]
+    cc = cov[1:, 1:] - np.outer(s01, cov[0, 1:])
+    r = y[1:] - mu
+    quad = float(r @ np.linalg.solve(cc, r))
+    logdet = float(np.linalg.slogdet(cc)[1])
+    nll, s2 = _neg_loglik(jnp.asarray(y), jnp.asarray(a), jnp.asarray(q))
+    np.testing.assert_allclose(float(s2), quad / (n - 1), rtol=1e-6)
+    np.testing.assert_allclose(float(nll), 0.5 * logdet + 0.5 * (n - 1) * np.log(quad / (n - 1)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("a,q", [(0.9, 0.01), (0.0, 1.0), (-0.5, 0.2)])
+def test_drift_noise_model_autocovariance(a, q):
+    """(1 - a q^-1)(1 - q^-1) z is MA(1): the model's C must have its lag-1 autocorrelation."""
+    c, d = (np.asarray(v) for v in drift_noise_model(jnp.asarray(a), jnp.asarray(q)))
+    np.testing.assert_allclose(d, np.convolve([1, -a], [1, -1]), atol=1e-15)
+    th = c[1]
+    assert abs(th) < 1
+    np.testing.assert_allclose(th / (1 + th * th), -(a * q + 1) / (q * (1 + a * a) + 2), rtol=1e-10)
 
 
 def test_quantisation_lattice():
