@@ -68,7 +68,7 @@ class ScreenSettings(eqx.Module):
 
     estimate: Settings = SCREEN_ESTIMATE
     verdict: VerdictSettings = VerdictSettings()
-    chunk: int = eqx.field(static=True, default=4)
+    chunk: int = eqx.field(static=True, default=2)
     samples_per_call: int = eqx.field(static=True, default=8000)
 
 
