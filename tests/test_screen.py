@@ -49,8 +49,11 @@ def _corrupt(folder, good):
 def test_bucket_ladder():
     assert [bucket_length(n) for n in (1, 500, 501, 1400, 1500, 1625, 18000)] == [500, 500, 800, 1500, 1500,
                                                                                       2000, 22700]
-    assert chunk_size(1500, js.ScreenSettings()) == 4
-    assert chunk_size(22700, js.ScreenSettings()) == 1
+    four = js.ScreenSettings(chunk=4)
+    assert chunk_size(1500, four) == 4
+    assert chunk_size(3000, four) == 2  # 8000 samples per call at most
+    assert chunk_size(22700, four) == 1
+    assert chunk_size(1500, js.ScreenSettings()) == js.ScreenSettings().chunk
 
 
 def test_residual_line_finds_a_sinusoid():
