@@ -6,7 +6,8 @@ Compares, in one run and on the same loops,
   over a batch of loops (float64, CPU); by default C = "gram" (the Gram-tensor
   route, for noisy records such as these) and M = "anderson" (accelerated
   alternation); choose with `--compression qr` and `--method alternation` or
-  `variable_projection`; and
+  `variable_projection`; the batch runs `--first-steps` (40) steps, then the members
+  not converged continue alone for the rest of the 200 (see `jax_fit`); and
 - NumPy: `tests/reference.py::relax_reference`, the plain full-data implementation
   (explicit regression matrices, `numpy.linalg.lstsq`), one loop at a time,
 
@@ -84,16 +85,45 @@ def prepare(op, pv, m):
 
 
 _FITS = {}
+MAX_STEPS = 200  # relax's default budget, every step counted
+FIRST_STEPS = 40  # --first-steps
 
 
 def jax_fit(n):
+    """The batched kernel: `jit(vmap(relax))` over the batch with a budget of
+    FIRST_STEPS steps, then, for the members that have not converged (a few), the
+    rest of the 200-step budget from where they stopped, in a batch of their own
+    (padded to a power of two, so it compiles once per size). Under `vmap` every
+    member runs as long as the slowest, so one loop that needs 200 steps would
+    otherwise hold the whole batch for 200. FIRST_STEPS = 0: one call, 200 steps."""
     if n not in _FITS:
+        first_budget = FIRST_STEPS or MAX_STEPS
 
-        def one(y, phi):
-            sol = relax(relax_problem(y, phi, n, method=COMPRESSION), method=METHOD)
+        def first(y, phi):
+            sol = relax(relax_problem(y, phi, n, method=COMPRESSION), method=METHOD, max_steps=first_budget)
+            return sol.loss, sol.num_steps, sol.result == optx.RESULTS.successful, sol.model
+
+        def rest(y, phi, model):
+            sol = relax(relax_problem(y, phi, n, method=COMPRESSION), model, method=METHOD,
+                        max_steps=MAX_STEPS - first_budget)
             return sol.loss, sol.num_steps, sol.result == optx.RESULTS.successful
 
-        _FITS[n] = jax.jit(jax.vmap(one))
+        f1, f2 = jax.jit(jax.vmap(first)), jax.jit(jax.vmap(rest))
+
+        def run(y, phi):
+            loss, steps, ok, model = f1(y, phi)
+            idx = np.flatnonzero(~np.asarray(ok))
+            if FIRST_STEPS and idx.size:
+                size = 1 << int(np.ceil(np.log2(idx.size)))
+                pad = np.concatenate([idx, np.full(size - idx.size, idx[0])])
+                l2, s2, o2 = f2(y[pad], phi[pad], jax.tree.map(lambda x: x[pad], model))
+                k = idx.size
+                loss = loss.at[idx].set(l2[:k])
+                steps = steps.at[idx].add(s2[:k])
+                ok = ok.at[idx].set(o2[:k])
+            return loss, steps, ok
+
+        _FITS[n] = run
     return _FITS[n]
 
 
@@ -214,13 +244,16 @@ def main():
                     help="relax_problem(method=...) of the JAX kernel (default gram: these loops are noisy)")
     ap.add_argument("--method", choices=("alternation", "anderson", "variable_projection"), default="anderson",
                     help="relax(method=...) of the JAX kernel")
+    ap.add_argument("--first-steps", type=int, default=40,
+                    help="steps of the whole batch before the unconverged members continue alone (0: one call)")
     ap.add_argument("--seed", type=int, default=0,
                     help="PRNG seed of the first loop (loop i uses seed + i; default 0)")
     ap.add_argument("--json", action="store_true",
                     help="print one JSON object on stdout (the table goes to stderr)")
     args = ap.parse_args()
-    global OUT, COMPRESSION, METHOD
+    global OUT, COMPRESSION, METHOD, FIRST_STEPS
     OUT = sys.stderr if args.json else sys.stdout
+    FIRST_STEPS = min(max(args.first_steps, 0), MAX_STEPS - 1)
     COMPRESSION, METHOD = args.compression, args.method
     q = args.quick
     np_count = args.numpy_loops or (8 if q else 16)
