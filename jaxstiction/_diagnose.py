@@ -291,6 +291,11 @@ def _loop_model(chain, oe, noise, max_delay, mu, sy, op_mean, sx, output=()):
     )
 
 
+def _add_output(model: LoopModel, block) -> LoopModel:
+    """`model` with the output-side `block` added after its own output blocks."""
+    return eqx.tree_at(lambda m: m.output, model, tuple(model.output) + (block,))
+
+
 def _shift_phase(model: LoopModel, n: int) -> LoopModel:
     """The model seen from sample `n` on (output oscillations keep their phase)."""
     out = tuple(
@@ -618,8 +623,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     # which is conservative here: on 800 stationary AR(1) records (pole 0.9 or 0.5,
     # 2000 samples) the statistic was 0 on 62-69 % of them, not 50 %, and exceeded
     # 1.0, 2.0 and 3.3 half to three quarters as often as the mixture says.
-    pvals["drift"] = min(1.0, len(names) * (0.5 * math.erfc(math.sqrt(max(T_obs["drift"], 0.0))) if T_obs["drift"] > 0
-                                            else 1.0))
+    pvals["drift"] = min(1.0, len(names) * 0.5 * math.erfc(math.sqrt(T_obs["drift"]))) if T_obs["drift"] > 0 else 1.0
 
     # --------------------------------------------------------------- refit & prove
     say("refitting the significant candidates")
@@ -700,7 +704,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
                 model = with_block((blk,), (blk(op_in_j) - om) / sx)
         elif fam == "external_oscillation":
             params = {"amplitude": round(amp, 4), "period_samples": round(float(P), 3), "phase": round(ph, 4)}
-            model = eqx.tree_at(lambda m: m.output, nominal, tuple(nominal.output) + (sinusoid,))
+            model = _add_output(nominal, sinusoid)
         else:  # drift: an integrating noise model; no simulation gain possible
             _, a_d, q_d, s_d, a_s = (float(v) for v in drift_obs)
             c_d, d_d = drift_noise_model(a_d, q_d)
@@ -788,7 +792,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         p2 = min(1.0, len(names) * _normal_sf((T2 - mean[i_osc]) / std[i_osc]))
         if p2 <= settings.alpha:
             amp, Pk, ph = _fit_sinusoid(zw, n_est, 1.0 / f[k])
-            both = eqx.tree_at(lambda m: m.output, model, (Sinusoid(amp, Pk, ph),))
+            both = _add_output(model, Sinusoid(amp, Pk, ph))
             after2 = _heldout(both, op, pv, n_est)
             _, g_std = null_gain(both, model)
             gain2 = _diff(after2["fitness"], ordered[0].heldout_after["fitness"])
