@@ -374,7 +374,8 @@ def write_screen_loop_figure(entry: dict, path) -> Path:
     ax_fit.legend(fontsize=8, loc="upper right")
     ax_fit.grid(alpha=0.3)
 
-    verdict = "STICTION" if entry["stiction_detected"] else f"no stiction (cause: {entry.get('cause')})"
+    verdict = (("STICTION" if entry.get("slip_identified") else "STICTION (no slip seen: a deadband fits as well)")
+               if entry["stiction_detected"] else f"no stiction (cause: {entry.get('cause')})")
     band = entry.get("band_percent")
     ev = entry.get("evidence")
     fit_ = entry.get("fitness")

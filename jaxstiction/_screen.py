@@ -126,6 +126,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "Ts": float(ts),
         "stiction_detected": bool(ver.stiction_detected),
         "cause": cause if ok else None,
+        "slip_identified": bool(ver.slip_identified) if ok else None,
         "band_percent": _r(fit.band_percent),
         "fitness": _r(fit.fitness),
         "S": _r(fit.S),

@@ -8,9 +8,9 @@ import html
 from pathlib import Path
 
 
-COLUMNS = ("rank", "name", "status", "stiction_detected", "cause", "band_percent", "S", "J", "evidence",
-           "evidence_estimation", "fitness", "fitness_kano", "fitness_linear", "oscillation", "period_samples",
-           "model", "samples", "Ts", "file")
+COLUMNS = ("rank", "name", "status", "stiction_detected", "cause", "slip_identified", "band_percent", "S", "J",
+           "evidence", "evidence_estimation", "fitness", "fitness_kano", "fitness_linear", "oscillation",
+           "period_samples", "model", "samples", "Ts", "file")
 
 
 def _cell(v):
@@ -58,7 +58,8 @@ def write_html(report, path: Path) -> Path:
         cls = "sticky" if r["stiction_detected"] else ("" if ok else "error")
         pic = r.get("picture")
         thumb = f'<a href="{e(pic)}"><img src="{e(pic)}" alt="{e(r["name"])}"></a>' if pic else ""
-        verdict = ("stiction" if r["stiction_detected"] else "no stiction") if ok else "error"
+        verdict = ("no stiction" if not r["stiction_detected"] else
+                   "stiction" if r.get("slip_identified") else "stiction (no slip seen)") if ok else "error"
         rows.append(
             f'<tr class="{cls}"><td class="num">{i}</td><td>{e(r["name"])}</td>'
             f'<td class="verdict">{e(verdict)}</td><td>{e(str(r.get("cause") or ""))}</td>'
@@ -73,7 +74,8 @@ def write_html(report, path: Path) -> Path:
 <p>{c['loops']} loops: {c['ok']} ok, {c['errors']} errors, <b>{c['sticky']} sticky</b>.
 Ranked by stiction evidence (held-out simulation fitness gained by a Kano stiction
 valve over a linear valve, in points) and band. <i>cause</i> names what explains a loop
-that is not sticky.</p>
+that is not sticky. "No slip seen": the valve has a band but its slip jump is not
+identified, so a deadband (backlash) of that width fits as well.</p>
 <table><thead><tr><th>#</th><th>loop</th><th>verdict</th><th>cause</th><th>band (% OP)</th>
 <th>evidence (points)</th><th>fitness (%)</th><th>status</th><th>picture</th></tr></thead>
 <tbody>

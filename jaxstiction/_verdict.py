@@ -5,11 +5,18 @@ was not fitted on: [`jaxstiction.estimate`][] fits both with the same Box–Jenk
 linear part, so the held-out simulation fitness of the two differs only by the valve.
 The apparent band alone is no test: every fit has one.
 
-When the valve is not sticky, the cause of the loop's behaviour is named from what
-the two fits leave:
+A sticky valve is one with a band S (deadband + stickband, DESIGN §2) and a slip jump
+J ≥ 0; J = 0 is a valve that sticks without slipping, and the Kano model cannot tell
+its stickband from a deadband (backlash). The slip is reported apart
+(`slip_identified`: the Kano valve beats a deadband of about its width), not used to
+clear the valve: on simulated loops a small slip (J < S/4) is invisible in the fit
+(Kano gains under 1.5 points over the deadband on 6 of 8), and the J fitted to pure
+deadbands spans the same J/S (0.02–0.27), so a rule "no visible slip, so backlash"
+would miss sticky valves without naming backlash reliably.
 
-- `deadband`: the Kano valve beats the linear one, but not a deadband (Kano with
-  J = 0) of about its width: a dead zone or backlash, not stick-slip;
+When the valve is not sticky, the cause of the loop's behaviour is named from what
+the linear fit leaves:
+
 - `external_oscillation`: the linear valve explains OP → PV, yet its residual holds
   a narrow spectral line: a periodic disturbance entering at the output (a loop
   oscillating from tight tuning is explained by the linear model and is `none`);
@@ -33,7 +40,7 @@ from ._estimate import RESULTS
 from ._loop import Loop
 
 
-CAUSES = ("none", "stiction", "deadband", "external_oscillation")
+CAUSES = ("none", "stiction", "external_oscillation")
 
 
 class VerdictSettings(eqx.Module):
@@ -45,8 +52,8 @@ class VerdictSettings(eqx.Module):
       (a stiction limit cycle moves OP by about the band; a Kano fit with a band
       far below the OP's travel is mimicking something else).
     - `min_slip_gain`: points the Kano valve must gain over a deadband (J = 0), on
-      the held-out or on the estimation samples, for the slip jump to count; below
-      it a valve nonlinearity is a deadband.
+      the held-out or on the estimation samples, for the slip jump to count as
+      identified (`slip_identified`; it does not change the verdict).
     - `oscillation`: share of the linear model's residual power in one narrow band
       (± one Fourier bin) above which the residual holds an external oscillation;
       `min_period`, `max_fraction`: lines with periods outside
@@ -66,7 +73,8 @@ class Verdict(eqx.Module):
     """Result of [`jaxstiction.verdict`][] (arrays; a leading axis when batched).
 
     - `stiction_detected`; `cause`: an index into `CAUSES` (`none`, `stiction`,
-      `deadband`, `external_oscillation`).
+      `external_oscillation`); `slip_identified`: the sticky valve's slip jump is
+      seen in the data (else a deadband of its width fits as well).
     - `evidence`: held-out fitness gain of the Kano valve over the linear valve
       (points); `evidence_estimation`: the same on the estimation samples.
     - `slip_evidence`, `slip_evidence_estimation`: the Kano valve's gain over a
@@ -78,6 +86,7 @@ class Verdict(eqx.Module):
 
     stiction_detected: Bool[Array, ""]
     cause: Int[Array, ""]
+    slip_identified: Bool[Array, ""]
     evidence: Float[Array, ""]
     evidence_estimation: Float[Array, ""]
     slip_evidence: Float[Array, ""]
@@ -130,20 +139,19 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> V
     span = fit.op_range[1] - fit.op_range[0]
     band = fit.S / jnp.where(span > 0, span, 1.0)
     ok = usable(fit.result) & jnp.isfinite(fit.fitness_physical) & jnp.isfinite(fit.fitness_linear)
-    nonlinear = (ok & jnp.isfinite(gain) & (gain > settings.min_gain) & (gain_est > settings.min_gain_estimation)
+    sticky = (ok & jnp.isfinite(gain) & (gain > settings.min_gain) & (gain_est > settings.min_gain_estimation)
                  & (band >= settings.min_band))
     slips = jnp.maximum(slip, slip_est) > settings.min_slip_gain
-    sticky = nonlinear & slips
-    deadband = nonlinear & ~slips
     op = jnp.where(loop.mask > 0, loop.op, 0.0)
     pv = jnp.where(loop.mask > 0, loop.pv, 0.0)
     sim = simulate_scored(fit.linear, op, pv, loop.mask)[0]
     share, period = residual_line(pv - sim, loop.mask, settings.min_period, settings.max_fraction)
     external = ok & (share > settings.oscillation)
-    cause = jnp.where(sticky, 1, jnp.where(deadband, 2, jnp.where(external, 3, 0)))
+    cause = jnp.where(sticky, 1, jnp.where(external, 2, 0))
     return Verdict(
         stiction_detected=sticky,
         cause=cause.astype(jnp.int32),
+        slip_identified=sticky & slips,
         evidence=gain,
         evidence_estimation=gain_est,
         slip_evidence=slip,

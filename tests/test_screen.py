@@ -121,7 +121,28 @@ def test_screen_entries_equal_single_fits(fleet, screened):
     assert r["S"] == pytest.approx(float(f.S), abs=1e-3)
     v = js.verdict(f, good[1], SCREEN.verdict)
     assert r["stiction_detected"] == bool(v.stiction_detected)
+    assert r["slip_identified"] == bool(v.slip_identified)
     assert r["evidence"] == pytest.approx(float(v.evidence), abs=1e-3)
+
+
+@pytest.mark.parametrize("kano, deadband, sticky, slip", [
+    (80.0, 80.0, True, False),   # a band without a visible slip: still a sticky valve
+    (80.0, 75.0, True, True),    # the slip jump gains 5 points over the deadband
+    (60.5, 50.0, False, False),  # Kano gains only 0.5 point over the linear valve
+])
+def test_verdict_rule(fleet, kano, deadband, sticky, slip):
+    """The verdict's rule on chosen scores: Kano against the linear valve (60 %) decides
+    `stiction_detected`; the deadband only decides whether the slip is identified."""
+    import equinox as eqx
+    _, good, _ = fleet
+    f = js.estimate(good[1], SMALL)
+    names = ("fitness_physical", "fitness_physical_estimation", "fitness_linear", "fitness_linear_estimation",
+             "fitness_deadband", "fitness_deadband_estimation", "S")
+    values = (kano, kano, 60.0, 60.0, deadband, deadband, 0.5 * (f.op_range[1] - f.op_range[0]))
+    f = eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + v for v in values])
+    v = js.verdict(f, good[1], SCREEN.verdict)
+    assert bool(v.stiction_detected) == sticky and bool(v.slip_identified) == slip
+    assert js.CAUSES[int(v.cause)] in (("stiction",) if sticky else ("none", "external_oscillation"))
 
 
 def test_report_files(screened, tmp_path):
