@@ -50,6 +50,7 @@ from ._filters import lagged, lfilter
 from ._linalg import is_stable, lstsq
 from ._locate import ar_whiten, cross_correlation, locate, spectrum_lines, whiteness
 from ._loop import make_loop
+from ._misc import release_programs_near_map_limit
 from ._models import LinearProcess, LoopModel, NoiseModel
 from ._physical import _delay, fit_oe
 from ._reduce import fit_noise_model
@@ -528,6 +529,8 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     if n_est < 200 or n - n_est < 100:
         raise ValueError(f"record too short for a diagnosis: {n} samples (need 200 to fit and 100 held out)")
     given = nominal is not None
+    if release_programs_near_map_limit():
+        say("released compiled programs: the process neared its memory-map limit")
     if nominal is None:
         say("fitting a linear-valve nominal model")
         nominal = _linear_valve_nominal(op, pv, n_est, settings)

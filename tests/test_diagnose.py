@@ -3,6 +3,7 @@ candidate grid, and end-to-end verdicts on concealed-effect scenarios."""
 
 import json
 import logging
+import os
 
 import jax
 import jax.numpy as jnp
@@ -257,3 +258,23 @@ def test_no_nominal_refits_stiction_jointly():
     truth = sc.plant.chain[0]
     assert abs(st.parameters["S"] - float(truth.S)) < 0.15 * float(truth.S)
     json.dumps(d.to_json())
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/sys/vm/max_map_count"), reason="Linux memory-map limit only")
+def test_programs_released_near_the_map_limit():
+    """Compiled programs hold memory maps; past the share of the kernel's limit the
+    guard `diagnose` runs clears them (the count drops), and jitted code still runs."""
+    from jaxstiction._misc import release_programs_near_map_limit
+
+    def maps():
+        with open(f"/proc/{os.getpid()}/maps") as f:
+            return sum(1 for _ in f)
+
+    f = jax.jit(lambda x: jnp.cumsum(jnp.sin(x)) * 2.0)
+    x = jnp.linspace(0.0, 1.0, 37)
+    want = np.asarray(f(x))
+    assert not release_programs_near_map_limit(share=1.0)  # far below the limit
+    before = maps()
+    assert release_programs_near_map_limit(share=0.0)
+    assert maps() < before
+    np.testing.assert_allclose(np.asarray(f(x)), want)
