@@ -260,6 +260,29 @@ def test_no_nominal_refits_stiction_jointly():
     json.dumps(d.to_json())
 
 
+def test_no_nominal_refits_deadband_jointly():
+    """Without a nominal model, a valve band whose slip is not significant is judged
+    as the joint fit's deadband (not the grid's, whose candidate holds the
+    linear-valve nominal's poles): significant, accepted, and gaining held-out fitness
+    over both the nominal and the joint fit's own linear valve; its width lands near
+    the truth."""
+    sc = js.make_scenario("P6", seed=0)
+    loop = sc.full.loop
+    short = js.make_loop(np.asarray(loop.op)[:1500], np.asarray(loop.pv)[:1500])
+    joint = js.Settings(use_spline=False,
+                        physical=js.PhysicalSettings(num_S=41, num_J=6, starts=3, refine=9, refine_S=31, final=3,
+                                                     line=15, rounds=1, polish_starts=2, init_count=3, oe_steps=20))
+    d = js.diagnose(short, None, js.DiagnoseSettings(bootstrap=19, joint=joint, joint_bootstrap=5))
+    (st,) = [f for f in d.findings if f.effect == "stiction"]
+    (db,) = [f for f in d.findings if f.effect == "deadband"]
+    assert not st.accepted and "deadband" in st.evidence["note"]
+    assert db.evidence["joint"] and db.accepted
+    assert db.evidence["heldout_gain"] > db.evidence["gain_needed"]
+    assert db.evidence["heldout_gain_over_linear"] > db.evidence["gain_needed"]
+    assert d.verdict == "deadband"
+    assert abs(db.parameters["width"] - float(sc.plant.chain[0].width)) < 0.25 * float(sc.plant.chain[0].width)
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/sys/vm/max_map_count"), reason="Linux memory-map limit only")
 def test_programs_released_near_the_map_limit():
     """Compiled programs hold memory maps; past the share of the kernel's limit the
