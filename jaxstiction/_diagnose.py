@@ -441,13 +441,14 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
     plus noise from its noise model (recorded OP), each fitted the same way (fewer on
     records longer than 3000 samples, at least 3).
 
-    When J is not significantly above 0, the valve band is a deadband: the joint
-    deadband fit is then judged the same way (its own statistic and bootstrap null,
-    held-out gain and spread) and returned beside the stiction finding, to stand for
-    the grid's deadband (whose candidate holds the nominal's poles too).
+    When the stiction finding is not accepted (J not significantly above 0, or the
+    Kano valve not holding up on held-out data), the joint deadband fit is judged
+    the same way (its own statistic and bootstrap null, held-out gain and spread)
+    and returned beside it, to stand for the grid's deadband (whose candidate holds
+    the nominal's poles too).
 
-    Returns `(stiction, deadband)` findings (`deadband` is `None` when J is
-    significant), or `None` when the fit failed."""
+    Returns `(stiction, deadband)` findings (`deadband` is `None` when stiction is
+    accepted), or `None` when the fit failed."""
     st = dataclasses.replace(settings.joint, validate=float(settings.holdout))
     def call(o, p):  # `estimate` is jitted: one compilation per record length and settings
         return estimate(make_loop(o, p), st)
@@ -523,11 +524,15 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
                      slips)
     if stiction is None:
         return None
-    if slips:
+    if stiction.accepted:  # J significant and the Kano valve proven: no deadband beside it
         return stiction, None
-    note = "J is not significantly above 0 (the Kano valve does not beat a deadband): deadband"
-    stiction = Finding("stiction", stiction.parameters, {**stiction.evidence, "note": note},
-                       stiction.heldout_before, stiction.heldout_after, False, stiction.model)
+    if not slips:
+        note = "J is not significantly above 0 (the Kano valve does not beat a deadband): deadband"
+        stiction = Finding("stiction", stiction.parameters, {**stiction.evidence, "note": note},
+                           stiction.heldout_before, stiction.heldout_after, False, stiction.model)
+    # the band without the slip, judged on its own: J not significant, or a Kano
+    # valve that did not hold up on held-out data (its slip fitted to the estimation
+    # part only)
     width = float(fit.deadband.chain[0].S)
     deadband = judge("deadband", 1, fit.deadband, {"width": round(width, 4), "interval": {}},
                      {"rank_score": round(lr(fit.deadband, fit.linear) - 2, 3)})
