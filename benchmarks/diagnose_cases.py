@@ -68,6 +68,11 @@ VARIANTS = {
 }
 
 
+def base(case):
+    """The P-case a variant varies (a P-case is its own)."""
+    return VARIANTS[case][0] if case in VARIANTS else case
+
+
 def variant_loop(name, seed):
     """The loop and nominal of variant `name`, simulated as `make_scenario` does."""
     _, chain, output = VARIANTS[name]
@@ -77,7 +82,7 @@ def variant_loop(name, seed):
 
 
 def right(case, d):
-    case = VARIANTS[case][0] if case in VARIANTS else case
+    case = base(case)
     acc = {f.effect for f in d.findings if f.accepted}
     if d.verdict != EXPECTED[case]:
         return False
@@ -109,7 +114,7 @@ def main():
             d = diagnose(loop, nominal)
             after = next((f.heldout_after["fitness"] for f in d.findings if f.accepted and f.model is not None
                           and f.effect.startswith(d.verdict)), d.heldout_nominal["fitness"])
-            if case == "P10" or VARIANTS.get(case, ("",))[0] == "P10":
+            if base(case) == "P10":
                 after = max([f.heldout_after["fitness"] for f in d.findings if f.accepted] + [after])
             run = dict(seed=seed, verdict=d.verdict, right=right(case, d), seconds=time.time() - t,
                        gain=after - d.heldout_nominal["fitness"],
@@ -135,8 +140,7 @@ def main():
     print("|---|---|---|---|---|")
     for c, r in rows.items():
         extra = f" (false discoveries {r['false_discovery']:.0%})" if c == "P0" else ""
-        want = EXPECTED[VARIANTS[c][0] if c in VARIANTS else c]
-        print(f"| {c} | {want} | {r['right']}/{r['n']}{extra} | {r['median_gain']:+.2f} | "
+        print(f"| {c} | {EXPECTED[base(c)]} | {r['right']}/{r['n']}{extra} | {r['median_gain']:+.2f} | "
               f"{r['median_seconds']:.1f} |")
     print(f"\nseeds {args.seeds[0]}..{args.seeds[-1]}, {summary['total_seconds']:.0f} s")
 

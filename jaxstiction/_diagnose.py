@@ -240,6 +240,17 @@ def _refit_b(x, y, w, a0, c, d, delay, nb: int):
     return _whitened_loss(x, yf, w, lambda v: lfilter(d, cd, v), ones_f, delay, nb)[2]
 
 
+def _arma11(r, w):
+    """`(C, D)` of an ARMA(1,1) noise model fitted to residual `r` (weights `w`), or
+    `None` when the fit failed or a polynomial left the unit circle."""
+    nm = fit_noise_model(r, w, order=1)
+    one = jnp.ones(1, r.dtype)
+    c, d = jnp.concatenate([one, nm.c]), jnp.concatenate([one, nm.d])
+    if bool(nm.result == optx.RESULTS.successful) and bool(is_stable(c)) and bool(is_stable(d)):
+        return c, d
+    return None
+
+
 @eqx.filter_jit
 def _statistics(y, paths, base_x, w, a0, c, d, delay, nb: int, fmin, fmax):
     """Every candidate's loss for one output record `y` (scaled): the input paths
@@ -599,12 +610,12 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     th_oe = _refit_b(base_x, y, w_fit, a0, one, one, d_j, nb)
     b_oe = jnp.concatenate([jnp.zeros(delay), th_oe[:nb]])
     r_oe = y - lfilter(b_oe, a0, base_x) - th_oe[nb]
-    nm = fit_noise_model(r_oe, w_fit, order=1)
-    c0, d0 = jnp.concatenate([one, nm.c]), jnp.concatenate([one, nm.d])
-    if not (bool(nm.result == optx.RESULTS.successful) and bool(is_stable(c0)) and bool(is_stable(d0))):
+    noise0 = _arma11(r_oe, w_fit)
+    if noise0 is None:
         # an ARMA fit that failed or left the unit circle: an AR(1) noise model instead
         ar = float(np.clip(np.asarray(lstsq(lagged(r_oe, 1) * w_fit[:, None], r_oe * w_fit, 1e-12))[0], -0.99, 0.99))
-        c0, d0 = one, jnp.asarray([1.0, -ar])
+        noise0 = one, jnp.asarray([1.0, -ar])
+    c0, d0 = noise0
 
     def with_block(chain, x):
         """The nominal with `chain` added to its input chain, B and offset refitted."""
@@ -813,13 +824,13 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     # likelihood ratio is smaller: the oscillation is then judged as a second block
     # on top of it (CHEM24: a deadband gaining 86 held-out points, LR 1531, had
     # ranked below a period-13.6 oscillation gaining 1.2, LR 28).
+    best_output = max((g.evidence["rank_score"] for g in acc.values() if g.effect == "external_oscillation"),
+                      default=math.inf)
+
     def key(f):
         cc = f.evidence["residual_cross_correlation_passes"]
-        if not cc and f.effect in INPUT_FAMILIES and f.evidence["rank_score"] > max(
-                (g.evidence["rank_score"] for g in acc.values() if g.effect in OUTPUT_FAMILIES and g.effect != "drift"),
-                default=math.inf):
-            cc = True
-        return not cc, -f.evidence["rank_score"]
+        promoted = f.effect in INPUT_FAMILIES and f.evidence["rank_score"] > best_output
+        return not (cc or promoted), -f.evidence["rank_score"]
 
     det = sorted((f for f in acc.values() if f.effect != "drift"), key=key)
     ordered = det + [f for f in acc.values() if f.effect == "drift"]
@@ -837,10 +848,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         # 18.9/24.2 against a null of 15.1 +- 2.5)
         zs = jnp.asarray(zw / sy)
         zs = zs - jnp.sum(w_fit * zs) / jnp.sum(w_fit)
-        nm2 = fit_noise_model(zs, w_fit, order=1)
-        c2, d2 = jnp.concatenate([one, nm2.c]), jnp.concatenate([one, nm2.d])
-        if not (bool(nm2.result == optx.RESULTS.successful) and bool(is_stable(c2)) and bool(is_stable(d2))):
-            c2, d2 = c0, d0
+        c2, d2 = _arma11(zs, w_fit) or (c0, d0)
         r = np.asarray(lfilter(d2, c2, zs)) * np.asarray(w_fit)
         m8 = 8 * n
         R = np.fft.rfft(r, n=m8)

@@ -239,18 +239,24 @@ def test_cli_diagnose_unstable_nominal(tmp_path):
     _assert_one_line_error(run("diagnose", str(f), "--model", str(m), "--json"), "unstable")
 
 
-def test_no_nominal_refits_stiction_jointly():
-    """Without a nominal model the stiction finding comes from the joint refit (Kano
-    valve with the linear part's poles free), with its own bootstrap: on a sticky
-    loop it is significant and accepted with a held-out gain over the linear-valve
-    nominal, and S lands near the truth. Its JSON is plain."""
-    sc = js.make_scenario("P1", seed=0)
+def _diagnosed_without_nominal(case):
+    """Scenario `case` (seed 0, its first 1500 samples) diagnosed with no nominal
+    model, with a reduced joint Kano search and bootstrap."""
+    sc = js.make_scenario(case, seed=0)
     loop = sc.full.loop
     short = js.make_loop(np.asarray(loop.op)[:1500], np.asarray(loop.pv)[:1500])
     joint = js.Settings(use_spline=False,
                         physical=js.PhysicalSettings(num_S=41, num_J=6, starts=3, refine=9, refine_S=31, final=3,
                                                      line=15, rounds=1, polish_starts=2, init_count=3, oe_steps=20))
-    d = js.diagnose(short, None, js.DiagnoseSettings(bootstrap=19, joint=joint, joint_bootstrap=5))
+    return sc, js.diagnose(short, None, js.DiagnoseSettings(bootstrap=19, joint=joint, joint_bootstrap=5))
+
+
+def test_no_nominal_refits_stiction_jointly():
+    """Without a nominal model the stiction finding comes from the joint refit (Kano
+    valve with the linear part's poles free), with its own bootstrap: on a sticky
+    loop it is significant and accepted with a held-out gain over the linear-valve
+    nominal, and S lands near the truth. Its JSON is plain."""
+    sc, d = _diagnosed_without_nominal("P1")
     (st,) = [f for f in d.findings if f.effect == "stiction"]
     assert st.evidence["joint"] and st.evidence["significant"]
     assert st.accepted and st.heldout_after["fitness"] > st.heldout_before["fitness"]
@@ -266,13 +272,7 @@ def test_no_nominal_refits_deadband_jointly():
     linear-valve nominal's poles): significant, accepted, and gaining held-out fitness
     over both the nominal and the joint fit's own linear valve; its width lands near
     the truth."""
-    sc = js.make_scenario("P6", seed=0)
-    loop = sc.full.loop
-    short = js.make_loop(np.asarray(loop.op)[:1500], np.asarray(loop.pv)[:1500])
-    joint = js.Settings(use_spline=False,
-                        physical=js.PhysicalSettings(num_S=41, num_J=6, starts=3, refine=9, refine_S=31, final=3,
-                                                     line=15, rounds=1, polish_starts=2, init_count=3, oe_steps=20))
-    d = js.diagnose(short, None, js.DiagnoseSettings(bootstrap=19, joint=joint, joint_bootstrap=5))
+    sc, d = _diagnosed_without_nominal("P6")
     (st,) = [f for f in d.findings if f.effect == "stiction"]
     (db,) = [f for f in d.findings if f.effect == "deadband"]
     assert not st.accepted and "deadband" in st.evidence["note"]
