@@ -19,7 +19,8 @@ a setpoint that rarely moves (±5, probability 0.004), as most plant loops do):
 
 Each loop goes through `jaxstiction.screen_loops` (the batched estimate and the
 verdict, exactly as `jaxstiction screen`). Prints one row per loop (held-out gain of
-the Kano valve over the linear valve, the same on the estimation data, S, J, the
+the Kano valve over the linear valve in simulation, the same on the estimation data,
+both again in short-horizon prediction, the gains over a deadband, S, J, the
 residual line's share and period, the verdict and cause), then the confusion of
 "stiction detected" against the truth (a valve band: `stiction`, `small_slip`,
 `deadband`), the balanced accuracy, and how often the slip was identified.
@@ -97,7 +98,8 @@ def main():
     for r in results:
         m = meta[r["name"]]
         rows.append({**m, **{k: r.get(k) for k in ("status", "stiction_detected", "cause", "evidence",
-                                                   "evidence_estimation", "slip_evidence", "slip_identified",
+                                                   "evidence_estimation", "evidence_prediction",
+                                                   "evidence_prediction_estimation", "slip_evidence", "slip_identified",
                                                    "slip_evidence_estimation", "band_fraction", "S", "J",
                                                    "oscillation", "period_samples", "fitness")}})
     rows.sort(key=lambda r: (kinds.index(r["kind"]), r["seed"]))
@@ -113,12 +115,15 @@ def main():
         print(json.dumps({"rows": rows, "balanced_accuracy": bacc, "detected": detected, "slip_identified": slips,
                           "seconds": dt}))
         return
-    print(f"{'loop':<14} {'setpoint':<8} {'gain':>7} {'gain_est':>8} {'slip':>6} {'slip_est':>8} {'S/rng':>6} "
+    print(f"{'loop':<14} {'setpoint':<8} {'gain':>7} {'gain_est':>8} {'pred':>6} {'pred_est':>8} {'slip':>6} "
+          f"{'slip_est':>8} {'S/rng':>6} "
           f"{'S':>6} {'J':>6} {'line':>5} {'period':>6} {'verdict':<8} cause")
     for r in rows:
         f = lambda v, d=2: "nan" if v is None else f"{v:.{d}f}"  # noqa: E731
         print(f"{r['kind'] + '-' + str(r['seed']):<14} {r['setpoint']:<8} {f(r['evidence']):>7} "
-              f"{f(r['evidence_estimation']):>8} {f(r['slip_evidence']):>6} {f(r['slip_evidence_estimation']):>8} "
+              f"{f(r['evidence_estimation']):>8} {f(r['evidence_prediction']):>6} "
+              f"{f(r['evidence_prediction_estimation']):>8} {f(r['slip_evidence']):>6} "
+              f"{f(r['slip_evidence_estimation']):>8} "
               f"{f(r['band_fraction']):>6} {f(r['S']):>6} {f(r['J']):>6} {f(r['oscillation']):>5} "
               f"{f(r['period_samples'], 1):>6} {'STICKY' if r['stiction_detected'] else '-':<8} {r['cause']}"
               + (" (slip identified)" if r["slip_identified"] else "")

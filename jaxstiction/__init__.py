@@ -23,7 +23,12 @@ from ._blocks import (
     TravelLimits as TravelLimits,
 )
 from ._checks import check_loop as check_loop, LoopDataError as LoopDataError
-from ._criteria import score as score, ScoreSettings as ScoreSettings, simulate_scored as simulate_scored
+from ._criteria import (
+    predict_scored as predict_scored,
+    score as score,
+    ScoreSettings as ScoreSettings,
+    simulate_scored as simulate_scored,
+)
 from ._diagnose import (
     diagnose as diagnose,
     DiagnoseSettings as DiagnoseSettings,

@@ -28,18 +28,14 @@ class ScoreSettings(eqx.Module):
     init_count: int = eqx.field(static=True, default=40)
 
 
-def simulate_scored(model: LoopModel, op, pv, weights, settings: ScoreSettings = ScoreSettings()):
-    """Simulate `model` on the part of a record marked by `weights` (one contiguous
-    run of samples, weight 1), from an initial state estimated on its opening samples.
-
-    Returns `(pv_sim, fitness)`: the simulation over the whole array (meaningful on
-    and after the scored part) and the fitness (34) over the scored part, in percent.
-    """
+def _rolled(model: LoopModel, op, pv, weights, settings: ScoreSettings):
+    # The scored part (one contiguous run of weight-1 samples) rolled to the front, so
+    # every shape stays static, and the model's initial state estimated on its opening
+    # samples. Returns the rolled op, pv, weights, the state and the index map back.
     n = op.shape[0]
     t = jnp.arange(n)
     start = jnp.argmax(weights > 0)
     length = jnp.sum(weights)
-    # Roll the scored part to the front, so every shape stays static.
     idx = (t + start) % n
     op_r, pv_r, w_r = op[idx], pv[idx], weights[idx]
     window = jnp.maximum(settings.init_min, settings.init_fraction * length)
@@ -48,10 +44,35 @@ def simulate_scored(model: LoopModel, op, pv, weights, settings: ScoreSettings =
     # the initial state runs on those samples only
     bound = min(n, math.ceil(max(settings.init_min, settings.init_fraction * n)))
     init = model.initial_state(op_r, pv_r, w_init, count=settings.init_count, window=bound)
+    return op_r, pv_r, w_r, init, (t - start) % n
+
+
+def simulate_scored(model: LoopModel, op, pv, weights, settings: ScoreSettings = ScoreSettings()):
+    """Simulate `model` on the part of a record marked by `weights` (one contiguous
+    run of samples, weight 1), from an initial state estimated on its opening samples.
+
+    Returns `(pv_sim, fitness)`: the simulation over the whole array (meaningful on
+    and after the scored part) and the fitness (34) over the scored part, in percent.
+    """
+    op_r, pv_r, w_r, init, back = _rolled(model, op, pv, weights, settings)
     sim_r = model.simulate(op_r, init)
-    fit = fitness(pv_r, sim_r, w_r)
-    sim = sim_r[(t - start) % n]
-    return sim, fit
+    return sim_r[back], fitness(pv_r, sim_r, w_r)
+
+
+def predicted(model: LoopModel, op, pv, weights, k: int, settings: ScoreSettings = ScoreSettings()):
+    """The `k`-step-ahead prediction of `model` (its noise model included, see
+    [`jaxstiction.LoopModel.predict`][]) over the whole array, from an initial state
+    estimated on the opening samples of the part marked by `weights` (meaningful on and
+    after that part). `k` is a static int."""
+    op_r, pv_r, _, init, back = _rolled(model, op, pv, weights, settings)
+    return model.predict(op_r, pv_r, k, init)[back]
+
+
+def predict_scored(model: LoopModel, op, pv, weights, k: int, settings: ScoreSettings = ScoreSettings()):
+    """Fitness (34), in percent, of the `k`-step-ahead prediction of `model` on the
+    part of a record marked by `weights`, from an initial state estimated on its
+    opening samples as in [`jaxstiction.simulate_scored`][]."""
+    return fitness(pv, predicted(model, op, pv, weights, k, settings), weights)
 
 
 def score(model: LoopModel, op, pv, weights, settings: ScoreSettings = ScoreSettings()):

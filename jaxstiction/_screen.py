@@ -133,6 +133,8 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "J": _r(fit.J),
         "evidence": _r(ver.evidence),
         "evidence_estimation": _r(ver.evidence_estimation),
+        "evidence_prediction": _r(ver.evidence_prediction),
+        "evidence_prediction_estimation": _r(ver.evidence_prediction_estimation),
         "slip_evidence": _r(ver.slip_evidence),
         "slip_evidence_estimation": _r(ver.slip_evidence_estimation),
         "band_fraction": _r(ver.band_fraction, 4),
@@ -314,14 +316,15 @@ def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
 
 def rank(results: Iterable[dict]) -> list[dict]:
     """Loops ranked by stiction evidence and severity: sticky loops first (largest
-    held-out gain of the Kano valve over a linear one, then widest band), then the
-    other fitted loops by the same evidence, then the loops that failed."""
+    held-out gain of the Kano valve over a linear one, in simulation or in
+    short-horizon prediction, then widest band), then the other fitted loops by the
+    same evidence, then the loops that failed."""
 
     def key(r):
         ok = r["status"] == "ok"
-        ev = r.get("evidence")
-        return (not ok, not r["stiction_detected"], -(ev if ev is not None else -1e9),
-                -(r.get("band_percent") or 0.0))
+        gains = [g for g in (r.get("evidence"), r.get("evidence_prediction")) if g is not None]
+        ev = max(gains) if gains else -1e9
+        return (not ok, not r["stiction_detected"], -ev, -(r.get("band_percent") or 0.0))
 
     return sorted(results, key=key)
 

@@ -135,6 +135,18 @@ def test_predict_delegates_to_the_model(loops, singles):
     assert float(jnp.mean((lp.pv - k1) ** 2)) < float(jnp.mean((lp.pv - sim) ** 2))
 
 
+def test_predict_scored(loops, singles):
+    """k-step prediction scored like a simulation: from an estimated initial state, on
+    the marked samples; a horizon as long as the record is the simulation's score, and
+    a one-step prediction scores higher."""
+    f, lp = singles[0], loops[0]
+    n = lp.op.shape[0]
+    w = lp.mask * (jnp.arange(n) >= n // 3)
+    sim = float(js.score(f.model, lp.op, lp.pv, w))
+    assert float(js.predict_scored(f.model, lp.op, lp.pv, w, n)) == pytest.approx(sim, abs=1e-8)
+    assert float(js.predict_scored(f.model, lp.op, lp.pv, w, 1)) > sim
+
+
 def test_host_fit_reports_and_rejects_bad_input(loops):
     lp = loops[0]
     r = js.fit(np.asarray(lp.op), np.asarray(lp.pv), validate=0.25, settings=SMALL, name="syn")

@@ -11,6 +11,8 @@ from helpers import run
 from test_estimate import _loop, SMALL
 
 import jaxstiction as js
+from jaxstiction._criteria import predicted
+from jaxstiction._filters import fitness
 from jaxstiction._screen import bucket_length, chunk_size
 from jaxstiction._verdict import residual_line
 
@@ -131,18 +133,49 @@ def test_screen_entries_equal_single_fits(fleet, screened):
     (60.5, 50.0, False, False),  # Kano gains only 0.5 point over the linear valve
 ])
 def test_verdict_rule(fleet, kano, deadband, sticky, slip):
-    """The verdict's rule on chosen scores: Kano against the linear valve (60 %) decides
-    `stiction_detected`; the deadband only decides whether the slip is identified."""
-    import equinox as eqx
+    """The verdict's simulation rule on chosen scores: Kano against the linear valve
+    (60 %) decides `stiction_detected` (the prediction rule is switched off here); the
+    deadband only decides whether the slip is identified."""
     _, good, _ = fleet
-    f = js.estimate(good[1], SMALL)
-    names = ("fitness_physical", "fitness_physical_estimation", "fitness_linear", "fitness_linear_estimation",
-             "fitness_deadband", "fitness_deadband_estimation", "S")
-    values = (kano, kano, 60.0, 60.0, deadband, deadband, 0.5 * (f.op_range[1] - f.op_range[0]))
-    f = eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + v for v in values])
-    v = js.verdict(f, good[1], SCREEN.verdict)
+    f = _with_scores(js.estimate(good[1], SMALL), kano, deadband, 0.5)
+    v = js.verdict(f, good[1], js.VerdictSettings(prediction_band=2.0))
     assert bool(v.stiction_detected) == sticky and bool(v.slip_identified) == slip
     assert js.CAUSES[int(v.cause)] in (("stiction",) if sticky else ("none", "external_oscillation"))
+
+
+def _with_scores(f, kano, deadband, band):
+    import equinox as eqx
+    names = ("fitness_physical", "fitness_physical_estimation", "fitness_linear", "fitness_linear_estimation",
+             "fitness_deadband", "fitness_deadband_estimation", "S")
+    values = (kano, kano, 60.0, 60.0, deadband, deadband, band * (f.op_range[1] - f.op_range[0]))
+    return eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + v for v in values])
+
+
+def test_verdict_prediction_rule(fleet):
+    """A Kano valve that loses in simulation (55 against 60 %) is still sticky when it
+    wins in short-horizon prediction on both parts of the record with a band of at
+    least `prediction_band`; the prediction gains are those of the fitted models."""
+    _, good, _ = fleet
+    loop = good[1]
+    f0 = js.estimate(loop, SMALL)
+    op, pv, mask = loop.op, loop.pv, loop.mask
+    t = np.arange(op.shape[0])
+    n_est = int(f0.n_estimation)
+    score = js.ScoreSettings(init_count=js.VerdictSettings().prediction_init_count)
+    pred = [predicted(m, op, pv, mask, 3, score) for m in (f0.physical, f0.linear)]
+    parts = (mask * (t >= n_est), mask * (t < n_est))
+    gains = [float(fitness(pv, pred[0], w) - fitness(pv, pred[1], w)) for w in parts]
+    assert min(gains) > 1.0  # this loop's valve sticks: its slips show in 3-step prediction
+    loose = js.VerdictSettings(prediction_band=0.2)
+    for band, sticky in ((0.3, True), (0.1, False)):
+        v = js.verdict(_with_scores(f0, 55.0, 55.0, band), loop, loose)
+        assert float(v.evidence) == pytest.approx(-5.0)
+        assert [float(v.evidence_prediction), float(v.evidence_prediction_estimation)] == pytest.approx(gains)
+        assert bool(v.stiction_detected) == sticky
+    # a prediction gain below `min_gain` does not count
+    v = js.verdict(_with_scores(f0, 55.0, 55.0, 0.3), loop,
+                   js.VerdictSettings(prediction_band=0.2, min_gain=max(gains) + 1, min_gain_estimation=0.0))
+    assert not bool(v.stiction_detected)
 
 
 def test_report_files(screened, tmp_path):
