@@ -15,9 +15,10 @@ The Kano valve must win on the held-out and on the estimation samples, either
   simulation (which predicts little more than the mean), while every slip still
   shows a few samples later. On the calibration loops with such setpoints the
   simulation test missed 10 of 24 sticky valves (seeds 0–23) and the prediction
-  test found 8 of those 10. A tightly tuned linear loop also gains a few points of
-  short-horizon prediction from a small Kano band (its fitted band was 1–8 % of
-  the OP range there, a sticky valve's 13 % or more), hence the band bound.
+  test found 9 of those 10. A tightly tuned linear loop also gains a few points of
+  short-horizon prediction from a small Kano band (its fitted band was at most 8 %
+  of the OP range there, those sticky valves' 17–35 %), hence the band bound
+  (`benchmarks/calibrate_verdict.py`).
 
 A sticky valve is one with a band S (deadband + stickband) and a slip jump
 J ≥ 0; J = 0 is a valve that sticks without slipping, and the Kano model cannot tell
