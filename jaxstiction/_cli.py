@@ -125,12 +125,16 @@ def cmd_screen(args):
     rep = screen(args.paths, ts=args.ts, progress=progress, scheduler=args.scheduler, pictures=bool(args.out))
     if args.out:
         write_screen_outputs(rep, args.out)
-    lines = [f"{'loop':<16} {'status':<6} {'stiction':<8} {'cause':<21} {'band %':>7} {'evidence':>8} {'fitness %':>9}"]
+    # evidence: the Kano valve's held-out gain over a linear valve (points), in
+    # simulation and in short-horizon prediction
+    lines = [f"{'loop':<16} {'status':<6} {'stiction':<8} {'cause':<21} {'band %':>7} {'evidence':>8} "
+             f"{'(pred.)':>8} {'fitness %':>9}"]
     for e in rep.loops:
         if e["status"] == "ok":
             f = lambda v: "–" if v is None else f"{v:.2f}"  # noqa: E731
             lines.append(f"{e['name']:<16} {'ok':<6} {'yes' if e['stiction_detected'] else 'no':<8} "
-                         f"{e['cause']:<21} {f(e['band_percent']):>7} {f(e['evidence']):>8} {f(e['fitness']):>9}")
+                         f"{e['cause']:<21} {f(e['band_percent']):>7} {f(e['evidence']):>8} "
+                         f"{f(e.get('evidence_prediction')):>8} {f(e['fitness']):>9}")
         else:
             lines.append(f"{e['name']:<16} error  {e['status']}")
     summary = rep.summary_line() + f" ({time.time() - t0:.0f} s)"

@@ -13,7 +13,7 @@ from test_estimate import _loop, SMALL
 import jaxstiction as js
 from jaxstiction._criteria import predicted
 from jaxstiction._filters import fitness
-from jaxstiction._screen import bucket_length, chunk_size
+from jaxstiction._screen import bucket_length, chunk_size, rank
 from jaxstiction._verdict import residual_line
 
 
@@ -56,6 +56,18 @@ def test_bucket_ladder():
     assert chunk_size(3000, four) == 2  # 8000 samples per call at most
     assert chunk_size(22700, four) == 1
     assert chunk_size(1500, js.ScreenSettings()) == js.ScreenSettings().chunk
+
+
+def test_rank_by_the_larger_heldout_gain():
+    """Sticky loops first, by their larger held-out gain (simulation or prediction),
+    then the other fitted loops, then errors."""
+    def entry(name, sticky, ev, pred, status="ok"):
+        return {"name": name, "status": status, "stiction_detected": sticky, "evidence": ev,
+                "evidence_prediction": pred, "band_percent": 1.0}
+
+    loops = [entry("err", False, None, None, "too_short"), entry("healthy", False, 0.5, 0.2),
+             entry("sim", True, 5.0, 1.0), entry("pred", True, -18.0, 13.0), entry("weak", True, 2.0, -1.0)]
+    assert [r["name"] for r in rank(loops)] == ["pred", "sim", "weak", "healthy", "err"]
 
 
 def test_residual_line_finds_a_sinusoid():
