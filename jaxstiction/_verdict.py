@@ -159,9 +159,11 @@ def usable(result) -> Bool[Array, ""]:
     return ~bad
 
 
+@eqx.filter_jit  # its scored simulation and predictions cost seconds run eagerly
 def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> Verdict:
     """The stiction verdict and cause of one loop from its
-    [`jaxstiction.LoopFit`][] (see the module notes). Pure; vmap it with `estimate`."""
+    [`jaxstiction.LoopFit`][] (see the module notes). Pure and jitted; vmap it with
+    `estimate`."""
     gain = fit.fitness_physical - fit.fitness_linear
     gain_est = fit.fitness_physical_estimation - fit.fitness_linear_estimation
     slip = fit.fitness_physical - fit.fitness_deadband
