@@ -198,6 +198,15 @@ def spline_band(beta, knots, knot_mask, lo, hi, num: int = 400):
     return jnp.abs(_crossing(ug, up, mid) - _crossing(ug, down, mid))
 
 
+def estimation_parts(mask, n_est, n_val):
+    """The weights of the estimation samples (the first `n_est` real ones: the real
+    samples of a padded loop come first) and of the held-out ones (the rest; the
+    estimation samples again when nothing is held out)."""
+    t = jnp.arange(mask.shape[0])
+    w_est = mask * (t < n_est)
+    return w_est, jnp.where(n_val > 0, mask * (t >= n_est), w_est)
+
+
 def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     r"""Identify the valve and the process of one loop from OP and PV.
 
@@ -222,7 +231,6 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     op0, pv0 = jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype)
     mask = jnp.asarray(loop.mask, dtype)
     N = op0.shape[0]
-    t = jnp.arange(N)
     finite = jnp.isfinite(op0) & jnp.isfinite(pv0)
     bad = jnp.any(~finite & (mask > 0))
     op = jnp.where(finite, op0, 0.0)
@@ -231,8 +239,7 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     n_real = jnp.sum(mask)
     n_val = jnp.round(settings.validate * n_real)
     n_est = n_real - n_val
-    w_est = mask * (t < n_est)
-    w_val = jnp.where(n_val > 0, mask * (t >= n_est), w_est)
+    w_est, w_val = estimation_parts(mask, n_est, n_val)
     count = jnp.maximum(jnp.sum(w_est), 1.0)
     big = jnp.finfo(dtype).max
     lo = jnp.min(jnp.where(w_est > 0, op, big))

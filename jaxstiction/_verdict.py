@@ -52,7 +52,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._criteria import predicted, ScoreSettings, simulate_scored
-from ._estimate import RESULTS
+from ._estimate import estimation_parts, RESULTS
 from ._filters import fitness
 from ._loop import Loop
 
@@ -173,10 +173,7 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> V
     ok = usable(fit.result) & jnp.isfinite(fit.fitness_physical) & jnp.isfinite(fit.fitness_linear)
     op = jnp.where(loop.mask > 0, loop.op, 0.0)
     pv = jnp.where(loop.mask > 0, loop.pv, 0.0)
-    # the estimation and held-out samples of `estimate` (the real samples come first)
-    t = jnp.arange(op.shape[0])
-    w_est = loop.mask * (t < fit.n_estimation)
-    w_val = jnp.where(fit.n_validation > 0, loop.mask * (t >= fit.n_estimation), w_est)
+    w_est, w_val = estimation_parts(loop.mask, fit.n_estimation, fit.n_validation)
     # Each model's prediction over the whole record, from an initial state estimated
     # at its start, then scored on both parts. A k-step prediction forgets its start
     # within k samples of the valve's first move, so a coarse search of the initial
