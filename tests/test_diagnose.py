@@ -12,7 +12,7 @@ import pytest
 from test_cli import _assert_one_line_error, _csv, run
 
 import jaxstiction as js
-from jaxstiction._diagnose import _quantisation, _refit_b
+from jaxstiction._diagnose import _quantisation, _refit_b, _slip_on_proven_band, Finding
 from jaxstiction._drift import _neg_loglik, drift_noise_model, drift_test
 from jaxstiction._filters import lfilter
 from jaxstiction._locate import cross_correlation, segment_power, spectrum_lines, whiteness
@@ -281,6 +281,32 @@ def test_no_nominal_refits_deadband_jointly():
     assert db.evidence["heldout_gain_over_linear"] > db.evidence["gain_needed"]
     assert d.verdict == "deadband"
     assert abs(db.parameters["width"] - float(sc.plant.chain[0].width)) < 0.25 * float(sc.plant.chain[0].width)
+
+
+def test_a_significant_slip_on_a_proven_band_is_stiction():
+    """The joint fit's rule: a deadband proven held out while J is significantly above
+    0 (and the Kano valve significant and beating its own linear valve held out) is
+    named stiction, the deadband marked as subsumed; if any of the three fails, the
+    findings stay as they were."""
+    before, after = {"fitness": 80.0}, {"fitness": 67.0}
+    st_ev = {"significant": True, "heldout_gain": -13.0, "heldout_gain_over_linear": 35.0, "gain_needed": 1.5}
+    db_ev = {"significant": True, "heldout_gain": 6.6, "heldout_gain_over_linear": 55.0, "gain_needed": 1.0}
+
+    def pair(st=None, db_ok=True):
+        return (Finding("stiction", {"S": 1.9, "J": 0.7}, {**st_ev, **(st or {})}, before, after, False),
+                Finding("deadband", {"width": 0.9}, db_ev, before, {"fitness": 87.0}, db_ok))
+
+    st, db = _slip_on_proven_band(*pair(), lr_slip=785.0)
+    assert st.accepted and not db.accepted
+    assert st.evidence["band_heldout_gain"] == 6.6 and "subsumed" in db.evidence["note"]
+    assert st.heldout_after == after  # the Kano valve's own figures, not the deadband's
+    for args, lr_slip in [(pair(), 3.0), (pair(db_ok=False), 785.0), (pair({"heldout_gain_over_linear": 1.0}), 785.0),
+                          (pair({"significant": False}), 785.0)]:
+        st, db = _slip_on_proven_band(*args, lr_slip=lr_slip)
+        assert (st.accepted, db.accepted) == (False, args[1].accepted)
+        assert "note" not in st.evidence
+    st, db = _slip_on_proven_band(pair()[0], None, lr_slip=785.0)
+    assert not st.accepted and db is None
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/sys/vm/max_map_count"), reason="Linux memory-map limit only")
