@@ -2,6 +2,8 @@
 the fit itself, the batched contract (vmap over padded loops == single calls),
 padding invariance, no retracing, data codes under vmap, the host API."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -46,6 +48,15 @@ def loops():
 @pytest.fixture(scope="module")
 def singles(loops):
     return [js.estimate(lp, SMALL) for lp in loops]
+
+
+NO_SPLINE = dataclasses.replace(SMALL, use_spline=False)
+
+
+@pytest.fixture(scope="module")
+def no_spline(loops):
+    """The first loop fitted with the screen's profile (no spline family)."""
+    return js.estimate(loops[0], NO_SPLINE)
 
 
 def test_synthetic_fit_finds_the_valve(singles):
@@ -161,43 +172,42 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
         js.fit(np.asarray(lp.op)[:100], np.asarray(lp.pv)[:100], settings=SMALL)
 
 
-def test_exported_program_cache(loops, singles, tmp_path, monkeypatch):
+def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     """`fit`'s on-disk cache of exported `estimate` programs: the first call exports
     and saves, a new process (here: the in-memory table cleared) loads the file
     without tracing `estimate` again, a corrupt file is rebuilt, and every route
-    gives what `estimate` gives."""
+    gives what `estimate` gives. (With the screen's profile, the smaller program: the
+    cache does not depend on the settings.)"""
     from jaxstiction import _programs
 
     monkeypatch.setattr(_programs, "_loaded", {})
     _programs.use_program_cache(tmp_path)
     try:
-        first = _programs.estimate_cached(loops[0], SMALL)
+        first = _programs.estimate_cached(loops[0], NO_SPLINE)
         (path,) = tmp_path.glob("estimate-*.jaxexport")
         exports = []
         real_export = _programs._export
         monkeypatch.setattr(_programs, "_export", lambda *a: exports.append(1) or real_export(*a))
         monkeypatch.setattr(_programs, "_loaded", {})
-        loaded = _programs.estimate_cached(loops[0], SMALL)
+        loaded = _programs.estimate_cached(loops[0], NO_SPLINE)
         assert exports == []
         path.write_bytes(b"not a program")
         monkeypatch.setattr(_programs, "_loaded", {})
-        rebuilt = _programs.estimate_cached(loops[0], SMALL)
+        rebuilt = _programs.estimate_cached(loops[0], NO_SPLINE)
         assert exports == [1]
     finally:
         _programs.use_program_cache(None)
     for got in (first, loaded, rebuilt):
         for name in ("fitness", "fitness_linear", "fitness_deadband", "S", "J", "band_percent"):
-            np.testing.assert_allclose(getattr(got, name), getattr(singles[0], name), rtol=1e-9)
-        assert code(got.result) == code(singles[0].result)
+            np.testing.assert_allclose(getattr(got, name), getattr(no_spline, name), rtol=1e-9)
+        assert code(got.result) == code(no_spline.result)
 
 
-def test_without_the_spline_family(loops, singles):
+def test_without_the_spline_family(no_spline, singles):
     """`use_spline=False` (the screen's profile) leaves the Kano model and the
     verdict's nulls exactly as the full estimator fits them; the spline fields are
     NaN and the physical model is the chosen one. Both families off is an error."""
-    import dataclasses
-
-    got = js.estimate(loops[0], dataclasses.replace(SMALL, use_spline=False))
+    got = no_spline
     for name in ("S", "J", "fitness_physical", "fitness_physical_estimation", "fitness_linear",
                  "fitness_linear_estimation", "fitness_deadband", "fitness_deadband_estimation"):
         np.testing.assert_allclose(getattr(got, name), getattr(singles[0], name), rtol=1e-9)
