@@ -189,6 +189,26 @@ def test_stiction_beside_an_external_oscillation():
     assert "external_oscillation" in {f.effect for f in d.findings if f.accepted}
 
 
+def test_the_larger_likelihood_ratio_ranks_the_input_blocks():
+    """Kano S = 6, J = 2 (a wider band than P1's), seed 103: the stiction model's
+    residual fails the input cross-correlation test, an actuator lag's passes, and
+    stiction, with the far larger likelihood ratio and held-out gain, is named (it
+    was `actuator_lag` while input blocks passing that test were ranked first). The
+    deadband beside it is dropped because J is significant."""
+    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+
+    rec = js.simulate_loop(nominal_model(chain=(js.Kano(6.0, 2.0),)), p_experiment(),
+                           jax.random.fold_in(jax.random.PRNGKey(103), 3), P_N)
+    d = js.diagnose(rec.loop, nominal_model(), FAST)
+    found = {f.effect: f for f in d.findings}
+    assert d.verdict == "stiction"
+    assert not found["stiction"].evidence["residual_cross_correlation_passes"]
+    lag = found["actuator_lag"]
+    assert lag.accepted and lag.evidence["residual_cross_correlation_passes"]
+    assert found["stiction"].evidence["statistic"] > lag.evidence["statistic"]
+    assert not found["deadband"].accepted and "subsumed" in found["deadband"].evidence["note"]
+
+
 def test_repeat_diagnosis_compiles_nothing(caplog):
     """A second diagnosis of a loop of the same shape reuses every compiled program:
     a long process (a benchmark, a fleet) must not accumulate programs, which once
