@@ -543,8 +543,7 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
         return stiction, None
     if not slips:
         note = "J is not significantly above 0 (the Kano valve does not beat a deadband): deadband"
-        stiction = Finding("stiction", stiction.parameters, {**stiction.evidence, "note": note},
-                           stiction.heldout_before, stiction.heldout_after, False, stiction.model)
+        stiction = _revised(stiction, False, note=note)
     # the band without the slip, judged on its own: J not significant, or a Kano
     # valve that did not hold up on held-out data (its slip fitted to the estimation
     # part only)
@@ -578,14 +577,14 @@ def _slip_on_proven_band(stiction: Finding, deadband: Finding | None, lr_slip: f
             f"data (likelihood ratio {lr_slip:.1f} > 3.84); the Kano valve's own held-out simulation gains "
             f"{ev['heldout_gain']:+.2f} points over the nominal and {ev['heldout_gain_over_linear']:+.2f} over "
             "its linear valve (one slip simulated at the wrong time held out costs a simulation much of its fitness)")
-    stiction = Finding("stiction", stiction.parameters, {
-        **ev, "proof": "band held out, slip on estimation data",
-        "band_heldout_gain": deadband.evidence["heldout_gain"], "note": note},
-        stiction.heldout_before, stiction.heldout_after, True, stiction.model)
-    deadband = Finding("deadband", deadband.parameters, {
-        **deadband.evidence, "note": "subsumed by stiction: J is significantly above 0"},
-        deadband.heldout_before, deadband.heldout_after, False, deadband.model)
-    return stiction, deadband
+    return (_revised(stiction, True, proof="band held out, slip on estimation data",
+                     band_heldout_gain=deadband.evidence["heldout_gain"], note=note),
+            _revised(deadband, False, note="subsumed by stiction: J is significantly above 0"))
+
+
+def _revised(finding: Finding, accepted: bool, **evidence) -> Finding:
+    """`finding` with its acceptance decided again and `evidence` added."""
+    return dataclasses.replace(finding, evidence={**finding.evidence, **evidence}, accepted=accepted)
 
 
 def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
@@ -859,14 +858,11 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         drop, note = (("stiction", "J is not significantly above 0: deadband") if lr_j < 3.84 else
                       ("deadband", f"subsumed by stiction: J is significantly above 0 (likelihood ratio {lr_j:.1f})"))
         acc.pop(drop)
-        findings = [
-            Finding(f.effect, f.parameters, {**f.evidence, "note": note}, f.heldout_before, f.heldout_after, False,
-                    f.model) if f.effect == drop else f
-            for f in findings
-        ]
-    # rank: by the penalised likelihood ratio, residual tests passed first, except
-    # that an input block outranks every block whose likelihood ratio is smaller
-    # whatever the test says. Between input blocks, the cross-correlation test fails
+        findings = [_revised(f, False, note=note) if f.effect == drop else f for f in findings]
+    # rank: by the penalised likelihood ratio, blocks whose residual passes the
+    # cross-correlation test first, except that an input block whose likelihood ratio
+    # exceeds every accepted oscillation's (all of them when none is accepted) joins
+    # the first group whatever the test says. Between input blocks, the cross-correlation test fails
     # for the right block too when anything (an oscillation, a grid point's slip
     # timing) is left in the residual: Kano S 6, J 2 seed 103 was named actuator lag
     # (LR 147, held-out gain 25.5) over stiction (LR 474, gain 37.8), and one seed
