@@ -24,6 +24,7 @@ import json
 import statistics
 import time
 
+import equinox as eqx
 import jax
 
 
@@ -40,6 +41,7 @@ from jaxstiction import (  # noqa: E402
     EqualPercentage,
     Kano,
     make_scenario,
+    NarrowBand,
     simulate_loop,
     Sinusoid,
     TravelLimits,
@@ -65,6 +67,7 @@ VARIANTS = {
     "P9 a0.6": ("P9", (ActuatorLag(0.6),), ()),
     "P9 a0.9": ("P9", (ActuatorLag(0.9),), ()),
     "P10 S6 J2 A3 P45": ("P10", (Kano(6.0, 2.0),), (Sinusoid(3.0, 45.0),)),
+    "P5 narrow-band rms 3.5 P40": ("P5", (), (NarrowBand(3.5, 40.0),)),
 }
 
 
@@ -76,6 +79,9 @@ def base(case):
 def variant_loop(name, seed):
     """The loop and nominal of variant `name`, simulated as `make_scenario` does."""
     _, chain, output = VARIANTS[name]
+    # a stochastic output block draws its own realisation per seed
+    output = tuple(eqx.tree_at(lambda b: b.key, b, jr.key_data(jr.fold_in(jr.PRNGKey(seed), 7)))
+                   if hasattr(b, "key") else b for b in output)
     rec = simulate_loop(nominal_model(chain=chain, output=output), p_experiment(),
                         jr.fold_in(jr.PRNGKey(seed), 3), P_N)
     return rec.loop, nominal_model()

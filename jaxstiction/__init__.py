@@ -16,6 +16,7 @@ from ._blocks import (
     He as He,
     Kano as Kano,
     make_block as make_block,
+    NarrowBand as NarrowBand,
     Quantiser as Quantiser,
     RateLimit as RateLimit,
     run_chain as run_chain,

@@ -13,8 +13,8 @@ Every block is an `eqx.Module` whose fields are its parameters, with
 Blocks on the **input side** sit between the controller output OP and the process
 input (order in a real loop: actuator lag / rate limit → stiction or deadband →
 travel limits → inherent characteristic → dead time). Blocks on the **output side**
-act on the process output (`side = "output"`): external sinusoid, drift,
-sensor quantisation. All valve quantities are in % of span.
+act on the process output (`side = "output"`): external sinusoid, narrow-band
+disturbance, drift, sensor quantisation. All valve quantities are in % of span.
 
 [`jaxstiction.BLOCKS`][] maps each name to its class; [`jaxstiction.make_block`][]
 builds one from a name and parameters (as in a nominal-model file).
@@ -372,6 +372,35 @@ class Drift(AbstractBlock):
         return (w, t + 1), y + w
 
 
+class NarrowBand(AbstractBlock):
+    r"""Narrow-band external disturbance added at the process output: white noise
+    through a resonator with poles $r e^{\pm 2\pi i/P}$,
+    $w(t) = 2 r \cos(2\pi/P)\, w(t-1) - r^2 w(t-2) + \sigma \epsilon(t)$ from rest,
+    with $\sigma$ set so that the stationary standard deviation of $w$ is `rms`;
+    drawn from `key`. An oscillation of period `period` (samples) whose amplitude and
+    phase wander over about $1/(1 - r)$ samples: no sinusoid fitted to one part of a
+    record predicts another."""
+
+    side: ClassVar[str] = "output"
+    rms: Float[Array, ""] = eqx.field(converter=_f)
+    period: Float[Array, ""] = eqx.field(converter=_f)
+    r: Float[Array, ""] = eqx.field(converter=_f, default=0.99)
+    key: Array = eqx.field(default_factory=lambda: jr.key_data(jr.key(0)))
+
+    def init(self, u0):
+        z = jnp.zeros_like(jnp.asarray(u0))
+        return (z, z, z)
+
+    def step(self, state, y):
+        w1, w2, t = state
+        c, r2 = jnp.cos(2 * jnp.pi / self.period), self.r**2
+        # stationary variance of the AR(2) per unit innovation variance
+        gain = (1 + r2) / ((1 - r2) * ((1 + r2) ** 2 - 4 * r2 * c**2))
+        eps = jr.normal(jr.fold_in(jr.wrap_key_data(self.key), t.astype(jnp.int32)), (), w1.dtype)
+        w = 2 * self.r * c * w1 - r2 * w2 + self.rms / jnp.sqrt(gain) * eps
+        return (w, w1, t + 1), y + w
+
+
 class Quantiser(AbstractBlock):
     r"""Sensor quantisation $q\,\mathrm{round}(y/q)$ (ties to even)."""
 
@@ -397,6 +426,7 @@ BLOCKS: dict[str, type[AbstractBlock]] = {
     "dead_time": DeadTime,
     "sinusoid": Sinusoid,
     "drift": Drift,
+    "narrow_band": NarrowBand,
     "quantiser": Quantiser,
 }
 

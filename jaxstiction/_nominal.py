@@ -45,6 +45,9 @@ __all__ = ["nominal_to_dict", "nominal_ts", "read_nominal"]
 
 _VALVE_MODELS = ("linear", "kano", "choudhury", "he", "deadband")
 
+# Stochastic blocks: their `key` is written as a list of unsigned integers.
+_KEYED = ("drift", "narrow_band")
+
 # Admissible values of block parameters: (block, parameter) -> (test, wording).
 _LIMITS = {
     ("kano", "S"): (lambda x: x >= 0, "≥ 0"),
@@ -59,6 +62,9 @@ _LIMITS = {
     ("equal_percentage", "R"): (lambda x: x > 0, "> 0"),
     ("sinusoid", "period"): (lambda x: x > 0, "> 0"),
     ("drift", "step_std"): (lambda x: x >= 0, "≥ 0"),
+    ("narrow_band", "rms"): (lambda x: x >= 0, "≥ 0"),
+    ("narrow_band", "period"): (lambda x: x > 2, "> 2"),
+    ("narrow_band", "r"): (lambda x: 0 <= x < 1, "in [0, 1)"),
     ("quantiser", "step_size"): (lambda x: x > 0, "> 0"),
 }
 
@@ -154,7 +160,7 @@ def _param(name: str, param: str, value: object, what: str, loc: str) -> Any:
     """One block parameter from JSON, checked, in the form its block takes."""
     if name == "dead_time" and param == "k":
         return _whole(value, what, loc)
-    if name == "drift" and param == "key":
+    if name in _KEYED and param == "key":
         if not (
             isinstance(value, (list, tuple))
             and value
@@ -373,7 +379,7 @@ def _block_params(blk: AbstractBlock, what: str) -> dict[str, Any]:
         value = getattr(blk, f.name)
         if name == "dead_time" and f.name == "k":
             out["k"] = int(value)
-        elif name == "drift" and f.name == "key":
+        elif name in _KEYED and f.name == "key":
             out["key"] = [int(v) for v in np.asarray(value).ravel()]
         elif name == "travel_limits" and float(np.asarray(value)) == (-math.inf if f.name == "lo" else math.inf):
             continue  # the default: no limit on that side

@@ -22,6 +22,7 @@ from jaxstiction._blocks import (
     He,
     Kano,
     make_block,
+    NarrowBand,
     Quantiser,
     RateLimit,
     run_chain,
@@ -324,9 +325,10 @@ EXAMPLE_PARAMS = {
     "dead_time": dict(k=3),
     "sinusoid": dict(amplitude=2.0, period=25.0, phase=0.4),
     "drift": dict(step_std=0.2, key=DRIFT_KEY),
+    "narrow_band": dict(rms=1.5, period=30.0, r=0.98, key=DRIFT_KEY),
     "quantiser": dict(step_size=0.5),
 }
-OUTPUT_SIDE = {"sinusoid", "drift", "quantiser"}
+OUTPUT_SIDE = {"sinusoid", "drift", "narrow_band", "quantiser"}
 
 
 def test_example_params_cover_the_registry():
@@ -504,6 +506,32 @@ def test_drift_is_a_random_walk():
     np.testing.assert_allclose(run(Drift(2 * std, DRIFT_KEY), np.zeros(n)), 2 * w, rtol=1e-12, atol=1e-12)
 
 
+def test_narrow_band_is_a_resonator_driven_by_white_noise():
+    n, rms, P, r = 20000, 2.0, 40.0, 0.98
+    w = run(NarrowBand(rms, P, r, DRIFT_KEY), np.zeros(n))
+    # NumPy reference: the same draws through the AR(2) recursion, from rest
+    eps = np.asarray(jax.vmap(lambda t: jr.normal(jr.fold_in(jr.wrap_key_data(DRIFT_KEY), t), ()))(jnp.arange(n)))
+    c, r2 = np.cos(2 * np.pi / P), r * r
+    sigma = rms / np.sqrt((1 + r2) / ((1 - r2) * ((1 + r2) ** 2 - 4 * r2 * c * c)))
+    ref = np.zeros(n)
+    w1 = w2 = 0.0
+    for t in range(n):
+        ref[t] = 2 * r * c * w1 - r2 * w2 + sigma * eps[t]
+        w1, w2 = ref[t], w1
+    np.testing.assert_allclose(w, ref, rtol=1e-9, atol=1e-9)
+    # stationary std `rms` (20000 samples, correlation time ~50: ~400 effective
+    # samples, a relative spread of ~4 %; 15 % is a 4-sigma bound)
+    assert np.std(w[500:]) == pytest.approx(rms, rel=0.15)
+    # its power sits at the period: the periodogram's peak within 5 % of 1/P
+    f = np.fft.rfftfreq(n)
+    peak = f[np.argmax(np.abs(np.fft.rfft(w)) ** 2)]
+    assert peak == pytest.approx(1 / P, rel=0.05)
+    # additive at the output, and the key matters
+    y = INPUTS["noisy"][:300]
+    np.testing.assert_allclose(run(NarrowBand(rms, P, r, DRIFT_KEY), y), y + w[:300], rtol=0, atol=1e-12)
+    assert not np.allclose(run(NarrowBand(rms, P, r, jr.key_data(jr.key(4))), np.zeros(300)), w[:300])
+
+
 # --------------------------------------------------------------------------------------
 # Registry.
 # --------------------------------------------------------------------------------------
@@ -536,6 +564,7 @@ def test_registry_names():
         "dead_time": DeadTime,
         "sinusoid": Sinusoid,
         "drift": Drift,
+        "narrow_band": NarrowBand,
         "quantiser": Quantiser,
     }
 

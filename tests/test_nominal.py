@@ -140,6 +140,9 @@ def test_extended_form():
     d = read_nominal(_nominal(valve=None, output=[{"block": "drift", "step_std": 0.3, "key": [0, 7]}]))
     np.testing.assert_array_equal(d.output[0].key, [0, 7])
     assert d.output[0].key.dtype == np.uint32
+    nb = read_nominal(_nominal(valve=None, output=[{"block": "narrow_band", "rms": 2.0, "period": 40, "key": [0, 3]}]))
+    assert type(nb.output[0]) is js.NarrowBand and float(nb.output[0].r) == 0.99
+    np.testing.assert_array_equal(nb.output[0].key, [0, 3])
     assert read_nominal(_nominal(valve=None, chain=[])).chain == ()
 
 
@@ -198,6 +201,8 @@ def test_extended_form():
          r"chain\[0\]: lo must be ≤ hi"),
         ({"output": [{"block": "quantiser", "step_size": 0}]}, r"output\[0\]\.step_size must be > 0"),
         ({"output": [{"block": "drift", "step_std": 0.1, "key": [-1]}]}, r"output\[0\]\.key must be a list of int"),
+        ({"output": [{"block": "narrow_band", "rms": 1.0, "period": 30.0, "r": 1.0}]},
+         r"output\[0\]\.r must be in \[0, 1\)"),
         ({"output": "sinusoid"}, r"'output' must be a list of blocks"),
     ],
 )
@@ -253,6 +258,7 @@ def test_read_nominal_file_errors(tmp_path):
             "output": [
                 {"block": "sinusoid", "amplitude": 1.0, "period": 50.0, "phase": 0.25},
                 {"block": "drift", "step_std": 0.3, "key": [0, 7]},
+                {"block": "narrow_band", "rms": 2.0, "period": 40.0, "r": 0.98, "key": [0, 3]},
                 {"block": "quantiser", "step_size": 0.1},
             ],
         },
