@@ -45,8 +45,9 @@ __all__ = ["nominal_to_dict", "nominal_ts", "read_nominal"]
 
 _VALVE_MODELS = ("linear", "kano", "choudhury", "he", "deadband")
 
-# Stochastic blocks: their `key` is written as a list of unsigned integers.
-_KEYED = ("drift", "narrow_band")
+# Stochastic blocks (those with a `key` field): the key is written as a list of
+# unsigned integers.
+_KEYED = frozenset(name for name, cls in BLOCKS.items() if "key" in {f.name for f in dataclasses.fields(cls)})
 
 # Admissible values of block parameters: (block, parameter) -> (test, wording).
 _LIMITS = {
