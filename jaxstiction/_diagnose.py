@@ -17,7 +17,9 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
    with the recorded OP), a normal approximation of each family's null tail, and a
    Bonferroni correction over the families. Drift has its own likelihood-ratio test
    ([`jaxstiction._drift`]) on the nominal's residual, judged by its (conservative)
-   chi-bar-squared null.
+   chi-bar-squared null. A valve characteristic is also tested by the operating
+   point the nominal states ([`jaxstiction._characteristic`]: an equal-percentage
+   block added with nothing refitted), which the refit of B and the offset hides.
 3. **Model and prove.** Each significant family's best block is added to the
    nominal: input blocks with B and the offset refitted, output blocks (oscillation,
    drift) to the nominal as it is. It is scored on the held-out samples (simulation
@@ -44,6 +46,7 @@ import numpy as np
 import optimistix as optx
 
 from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, Sinusoid, TravelLimits
+from ._characteristic import characteristic_statistics, rangeability_profile
 from ._criteria import simulate_scored
 from ._drift import drift_noise_model, drift_test
 from ._estimate import estimate, Settings
@@ -766,6 +769,17 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     # 2000 samples) the statistic was 0 on 62-69 % of them, not 50 %, and exceeded
     # 1.0, 2.0 and 3.3 half to three quarters as often as the mixture says.
     pvals["drift"] = min(1.0, len(names) * 0.5 * math.erfc(math.sqrt(T_obs["drift"]))) if T_obs["drift"] > 0 else 1.0
+    # A valve characteristic is also judged by the operating point the nominal states
+    # (`_characteristic`: the grid's refit of B and the offset absorbs that evidence);
+    # the family's p-value is the smaller of its two tests', doubled.
+    b_p, a_p = nominal.process.polynomials()
+    recs = jnp.asarray(np.stack([z] + pv_boot))  # the observed error, then the bootstrap's noise records
+    T_op, op_losses = (np.asarray(v) for v in characteristic_statistics(op_in_j, recs, b_p, a_p, c0, d0, w_fit))
+    p_op = 1.0
+    if T_op[0] > 0:
+        p_op = min(1.0, len(names) * _normal_sf((T_op[0] - T_op[1:].mean()) / max(float(T_op[1:].std(ddof=1)), 1e-9)))
+    by_op = p_op < pvals["valve_characteristic"]
+    pvals["valve_characteristic"] = min(1.0, 2.0 * min(p_op, pvals["valve_characteristic"]))
 
     # --------------------------------------------------------------- refit & prove
     say("refitting the significant candidates")
@@ -866,6 +880,14 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         if fam in INPUT_FAMILIES:
             k, params, iv = param_table(fam, slices[fam])
             blk = fams[fam][0][k]
+            if fam == "valve_characteristic":
+                ev.update(operating_point_statistic=round(float(T_op[0]), 3), operating_point_p_value=round(p_op, 4),
+                          operating_point_bootstrap_median=round(float(np.median(T_op[1:])), 3))
+                if by_op:  # R from the operating point's profile (the nominal's B and offsets held)
+                    R_op, iv_op = rangeability_profile(count * np.log(op_losses[0]))
+                    blk = EqualPercentage(R_op)
+                    params = {"R": round(R_op, 4)}
+                    iv = {"R": [round(v_, 4) for v_ in iv_op]}
             if sig_f:
                 model = with_block((blk,), (blk(op_in_j) - om) / sx)
         elif fam == "external_oscillation":

@@ -12,6 +12,7 @@ import pytest
 from test_cli import _assert_one_line_error, _csv, run
 
 import jaxstiction as js
+from jaxstiction._characteristic import characteristic_statistics, RANGEABILITIES, rangeability_profile
 from jaxstiction._diagnose import (
     _band_statistics,
     _quantisation,
@@ -242,6 +243,67 @@ def test_band_statistics_match_numpy():
 def _accepted(effect, rank_score, cc=True, **evidence):
     return Finding(effect, {}, {"rank_score": rank_score, "residual_cross_correlation_passes": cc, **evidence},
                    {}, {}, True)
+
+
+def test_characteristic_statistics_match_numpy():
+    """The operating-point statistic against a plain NumPy/SciPy loop: each
+    equal-percentage valve's shift of the valve path through the process (at rest at
+    the first sample), subtracted from the record, whitened by D/C, its weighted
+    mean square; T = n log(loss of the record itself / the smallest)."""
+    from scipy.signal import lfilter as sp_lfilter
+
+    rng = np.random.default_rng(3)
+    n = 400
+    op = 50 + np.cumsum(rng.normal(0, 0.5, n))
+    b, a = np.array([0.0, 1.0, 0.5]), np.array([1.0, -1.5, 0.7])
+    c, d = np.array([1.0, 0.2]), np.array([1.0, -0.8])
+    w = (np.arange(n) >= 30).astype(float)
+    recs = rng.normal(size=(3, n))
+    T, losses = (np.asarray(v) for v in characteristic_statistics(*(jnp.asarray(v) for v in (op, recs, b, a, c, d, w))))
+    K = b.sum() / a.sum()
+    for i, r in enumerate(recs):
+        ref = []
+        for R in RANGEABILITIES:
+            x = 100 * (R ** (op / 100) - 1) / (R - 1) - op
+            g = sp_lfilter(b, a, x - x[0]) + K * x[0]
+            ref.append(np.sum(w * sp_lfilter(d, c, r - g) ** 2) / w.sum())
+        ref = np.array(ref)
+        np.testing.assert_allclose(losses[i], ref, rtol=1e-9)
+        l0 = np.sum(w * sp_lfilter(d, c, r) ** 2) / w.sum()
+        np.testing.assert_allclose(T[i], w.sum() * np.log(l0 / ref.min()), rtol=1e-9)
+
+
+def test_rangeability_profile():
+    """The parabola through the grid's best point: its vertex and the points where
+    the profile rises by 3.84; on the grid's edge, the grid's own points."""
+    lr = np.log(RANGEABILITIES)
+    nll = 50.0 * (lr - np.log(17.0)) ** 2
+    R, (lo, hi) = rangeability_profile(nll)
+    assert R == pytest.approx(17.0, rel=1e-9)
+    half = np.sqrt(3.84 / 50.0)
+    assert lo == pytest.approx(17.0 * np.exp(-half), rel=1e-9) and hi == pytest.approx(17.0 * np.exp(half), rel=1e-9)
+    R, (lo, hi) = rangeability_profile(lr)  # increasing: the best is the grid's first point
+    assert R == RANGEABILITIES[0] and lo == RANGEABILITIES[0]
+
+
+def test_valve_characteristic_named_from_the_operating_point():
+    """An equal-percentage valve (R = 15) behind a linear-valve nominal: the
+    controller holds OP near 77 % instead of 50 %. Over the few percent of OP the loop
+    visits, its curvature alone is not significant (seed 102 was named `none`, with
+    the nominal at about -600 % held out); the operating point, with the nominal's
+    B and offsets held, names it and estimates R."""
+    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+
+    key = jax.random.PRNGKey(102)
+    plant = nominal_model(chain=(js.EqualPercentage(15.0),))
+    rec = js.simulate_loop(plant, p_experiment(), jax.random.fold_in(key, 3), P_N)
+    d = js.diagnose(rec.loop, nominal_model(), FAST)
+    top = d.findings[0]
+    assert d.verdict == "valve_characteristic" and top.accepted
+    assert top.evidence["operating_point_p_value"] <= FAST.alpha
+    lo, hi = top.parameters["interval"]["R"]
+    assert lo <= 15.0 <= hi and hi - lo < 3.0
+    assert top.heldout_after["fitness"] > 70.0 and d.heldout_nominal["fitness"] < 0.0
 
 
 def test_stochastic_effects_rank_after_proven_blocks():
