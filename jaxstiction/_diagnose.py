@@ -633,7 +633,7 @@ def _ranked(accepted: list[Finding]) -> list[Finding]:
     Stochastic effects (a drift, a narrow-band disturbance) claim no simulation gain:
     they come after every block that proved one, by their own likelihood ratios."""
     def stochastic(f):
-        return f.effect == "drift" or bool(f.evidence.get("stochastic"))
+        return bool(f.evidence.get("stochastic"))
 
     best_output = max((f.evidence["rank_score"] for f in accepted
                        if f.effect == "external_oscillation" and not stochastic(f)), default=-math.inf)
@@ -816,28 +816,32 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             _jit_kstep_rms(model, opj, recs, n_est + 20))
         return float(np.mean(g)), float(np.std(g))
 
-    def narrow_band(ev, gain):
+    def narrow_band(ev, params, gain, resid, c, d, period, base="the nominal"):
         """Is the oscillation, whose sinusoid did not hold up held out, a narrow-band
         disturbance whose band persists on the held-out part? A disturbance whose
         phase wanders (PAP7's, period ~54 samples) is no sinusoid: fitted on the
         estimation part, its phase is wrong held out and the simulation loses. Its
         band's excess over the neighbouring frequencies (`_band_statistics`, on the
-        held-out part of the refitted linear valve's residual) is tested against the
-        same statistic on the bootstrap records (one test at `alpha`). Updates `ev`."""
-        recs = jnp.asarray(np.stack([pv - base_sim] + pv_boot) / sy)
+        held-out part of `resid`, the residual of the model it would be added to,
+        whitened by `c`/`d`) is tested against the same statistic on the bootstrap's
+        noise records (one test at `alpha`). Updates `ev` and, when accepted, `params`
+        (a band has no amplitude or phase: the sinusoid's move to `ev`)."""
+        recs = jnp.asarray(np.stack([resid] + pv_boot) / sy)
         w_h = (t >= n_est + 50).astype(opj.dtype)
-        lr = np.log(np.asarray(_band_statistics(recs, c0, d0, w_h, 1.0 / float(P))))
+        lr = np.log(np.asarray(_band_statistics(recs, c, d, w_h, 1.0 / float(period))))
         p_h = _normal_sf((lr[0] - lr[1:].mean()) / max(float(lr[1:].std(ddof=1)), 1e-9))
         ev.update(heldout_band_log_ratio=round(float(lr[0]), 3), heldout_band_null_median=round(
             float(np.median(lr[1:])), 3), heldout_band_p_value=round(p_h, 4))
         if p_h > settings.alpha:
             return False
         ev.update(kind="narrow-band", stochastic=True, sinusoid_heldout_gain=round(gain, 3), heldout_gain=0.0,
-                  sinusoid_k_step_gain=ev["k_step_gain"], k_step_gain=0.0,
+                  sinusoid_k_step_gain=ev.get("k_step_gain"), k_step_gain=0.0,
+                  sinusoid_amplitude=params.pop("amplitude"), sinusoid_phase=params.pop("phase"),
                   note=(f"a narrow-band disturbance, not a sinusoid: the sinusoid fitted on the estimation data "
                         f"gains {gain:+.2f} points held out (its phase wanders), but the band's excess power "
                         f"persists held out (p = {p_h:.4f}); a stochastic disturbance, so no simulation gain "
-                        "is claimed and the model is the nominal"))
+                        f"is claimed and the model is {base}"))
+        params["band_period_samples"] = [round(float(period) / 1.1, 3), round(float(period) / 0.9, 3)]
         return True
 
     def param_table(fam, sl):
@@ -918,7 +922,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             k_stat = _heldout(stationary, op, pv, n_est)[f"k{K_STEP}_step_rms"]
             kgain_s = _diff(k_stat, after[f"k{K_STEP}_step_rms"])
             _, spread = null_kstep_gain(model, stationary, a_s)
-            ev.update(k_step_gain_over_stationary=round(kgain_s, 5), k_step_spread=round(spread, 5))
+            ev.update(k_step_gain_over_stationary=round(kgain_s, 5), k_step_spread=round(spread, 5), stochastic=True)
             ok = kgain_s > 0
             ev["note"] = ("drift is a stochastic disturbance: it cannot improve simulation fit, only prediction, "
                           "and its held-out k-step gain is not compared with its spread")
@@ -928,7 +932,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             ev.update(spread=round(spread, 3), gain_needed=round(need, 3))
             ok = gain > need
             if fam == "external_oscillation" and not ok and cc["passes"]:
-                ok = narrow_band(ev, gain)
+                ok = narrow_band(ev, params, gain, pv - base_sim, c0, d0, P)
                 if ok:  # no deterministic block: the model stays the nominal
                     model, after = nominal, before
         if fam in OUTPUT_FAMILIES and not cc["passes"]:
@@ -991,20 +995,29 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         V = float(np.sum(r**2)) / count
         T2 = count * float(np.log(V / max(V - red[k] / count, 1e-300)))
         p2 = min(1.0, len(names) * _normal_sf((T2 - mean[i_osc]) / std[i_osc]))
+        say(f"an oscillation on top of {verdict}: period {1.0 / f[k]:.1f} samples, statistic {T2:.1f}, p {p2:.4f}")
         if p2 <= settings.alpha:
             amp, Pk, ph = _fit_sinusoid(zw, n_est, 1.0 / f[k])
             both = _add_output(model, Sinusoid(amp, Pk, ph))
             after2 = _heldout(both, op, pv, n_est)
             _, g_std = null_gain(both, model)
             gain2 = _diff(after2["fitness"], ordered[0].heldout_after["fitness"])
-            if gain2 > max(0.5, g_std):
-                findings.append(Finding("external_oscillation", {
-                    "amplitude": round(amp, 4), "period_samples": round(float(Pk), 3), "phase": round(ph, 4),
-                    "with": verdict}, {
-                    "statistic": round(T2, 3), "p_value": round(p2, 4), "significant": True,
-                    "heldout_gain": round(_diff(after2["fitness"], before["fitness"]), 3),
-                    "gain_over_first_block": round(gain2, 3),
-                    "note": f"second block, on top of {verdict}"}, before, after2, True, both))
+            params2 = {"amplitude": round(amp, 4), "period_samples": round(float(Pk), 3), "phase": round(ph, 4),
+                       "with": verdict}
+            ev2 = {"statistic": round(T2, 3), "p_value": round(p2, 4), "significant": True,
+                   "heldout_gain": round(_diff(after2["fitness"], before["fitness"]), 3),
+                   "gain_over_first_block": round(gain2, 3), "spread": round(g_std, 3)}
+            ok2 = gain2 > max(0.5, g_std)
+            if not ok2 and _prove(both, op, pv, n_est, before)[3]["passes"]:
+                # the same route as a first block's: a band that persists held out
+                ok2 = narrow_band(ev2, params2, gain2, zw, c2, d2, Pk, base=f"the {verdict} model")
+                if ok2:
+                    both, after2 = model, ordered[0].heldout_after
+            ev2["note"] = f"second block, on top of {verdict}" + (f"; {ev2['note']}" if "note" in ev2 else "")
+            if not ok2:  # significant, but proved nothing held out: reported, not accepted
+                findings.append(Finding("external_oscillation", params2, ev2, before, after2, False, both))
+            else:
+                findings.append(Finding("external_oscillation", params2, ev2, before, after2, True, both))
                 findings = [f_ for f_ in findings if not (f_.effect == "external_oscillation" and "with" not in
                                                           f_.parameters)]
                 model = both

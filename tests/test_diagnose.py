@@ -313,7 +313,7 @@ def test_stochastic_effects_rank_after_proven_blocks():
     with a larger likelihood ratio does."""
     sat = _accepted("saturation", 18.0, cc=False)
     band = _accepted("external_oscillation", 85.0, stochastic=True, kind="narrow-band")
-    drift = _accepted("drift", 40.0, cc=False)
+    drift = _accepted("drift", 40.0, cc=False, stochastic=True)
     assert [f.effect for f in _ranked([band, drift, sat])] == ["saturation", "external_oscillation", "drift"]
     line = _accepted("external_oscillation", 85.0)
     assert [f.effect for f in _ranked([sat, line])] == ["external_oscillation", "saturation"]
@@ -336,8 +336,30 @@ def test_a_narrow_band_disturbance_is_named_without_a_gain():
     assert d.verdict == "external_oscillation" and osc.accepted
     assert osc.evidence["kind"] == "narrow-band" and osc.evidence["heldout_band_p_value"] <= FAST.alpha
     assert osc.evidence["sinusoid_heldout_gain"] < osc.evidence["gain_needed"]
+    lo, hi = osc.parameters["band_period_samples"]  # a band, not a sinusoid's amplitude and phase
+    assert lo < 40.0 < hi and "amplitude" not in osc.parameters and "phase" not in osc.parameters
     assert osc.heldout_after == osc.heldout_before == d.heldout_nominal
     assert not [f for f in d.findings if f.accepted and f.effect != "external_oscillation"]
+
+
+def test_a_narrow_band_disturbance_beside_stiction_is_a_second_block():
+    """Kano S = 4, J = 1 and a narrow-band output disturbance (period 30): stiction
+    is named, and the disturbance, whose sinusoid loses held out on top of the
+    stiction model, is accepted as a narrow-band second block by its held-out band,
+    with no gain claimed: the model stays the stiction model."""
+    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+
+    key = jax.random.PRNGKey(101)
+    band = js.NarrowBand(4.0, 30.0, key=jax.random.key_data(jax.random.fold_in(key, 7)))
+    plant = nominal_model(chain=(js.Kano(4.0, 1.0),), output=(band,))
+    rec = js.simulate_loop(plant, p_experiment(), jax.random.fold_in(key, 3), P_N)
+    d = js.diagnose(rec.loop, nominal_model(), FAST)
+    assert d.verdict == "stiction"
+    osc = next(f for f in d.findings if f.effect == "external_oscillation" and f.accepted)
+    assert osc.parameters["with"] == "stiction" and osc.evidence["kind"] == "narrow-band"
+    assert osc.evidence["heldout_band_p_value"] <= FAST.alpha
+    stiction = next(f for f in d.findings if f.effect == "stiction")
+    assert osc.heldout_after == stiction.heldout_after and not any(isinstance(b, js.Sinusoid) for b in d.model.output)
 
 
 def test_repeat_diagnosis_compiles_nothing(caplog):
