@@ -1034,6 +1034,13 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     not_ident = ["a constant sensor offset on PV cannot be told from the process offset",
                  "where in the chain a static block sits (before or after the valve characteristic) is not "
                  "identifiable from OP and PV alone"]
+    if verdict == "deadband":
+        st = next((f for f in findings if f.effect == "stiction"), None)
+        j_iv = st.parameters.get("interval", {}).get("J") if st is not None else None
+        not_ident.append(
+            "a deadband (J = 0) and a sticky valve whose slip jump is too small to show are alike in these data"
+            + (f" (the stiction fit's 95 % profile allows J up to {j_iv[1]:.3g})" if j_iv else "")
+            + ": the valve has a band of the width found either way")
     if not given:
         not_ident.append("no nominal model was given: dead time and valve characteristic are judged against "
                          "a linear-valve model fitted here, which absorbs part of them")

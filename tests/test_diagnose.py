@@ -454,6 +454,9 @@ def test_no_nominal_refits_deadband_jointly():
     assert db.evidence["heldout_gain_over_linear"] > db.evidence["gain_needed"]
     assert d.verdict == "deadband"
     assert abs(db.parameters["width"] - float(sc.plant.chain[0].width)) < 0.25 * float(sc.plant.chain[0].width)
+    # J = 0 is not proven, only not refuted: said so, with the slip the fit allows
+    (note,) = [x for x in d.not_identifiable if "deadband (J = 0)" in x]
+    assert f"J up to {st.parameters['interval']['J'][1]:.3g}" in note
 
 
 def test_a_significant_slip_on_a_proven_band_is_stiction():
