@@ -169,6 +169,9 @@ def test_refit_b_matches_numpy():
     # missed by the KPSS statistic's drift model (refitted on the linear valve's
     # residual), which predicted worse than the nominal on the held-out part
     ("P8", 12, "drift"),
+    # the travel limit (52.5 %) lies below the median OP (55.9 %: the controller winds
+    # up against it), where the limits searched used to stop
+    ("P4", 2, "saturation"),
 ])
 def test_verdicts(case, seed, expected):
     sc = js.make_scenario(case, seed=seed)
