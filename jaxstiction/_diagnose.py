@@ -156,6 +156,13 @@ def _normal_sf(zv: float) -> float:
     return 0.5 * math.erfc(zv / math.sqrt(2.0))
 
 
+def _null_tail(obs: float, null) -> float:
+    """P(statistic >= `obs`) under a normal approximation of the bootstrap values
+    `null` (so the p-value is not limited to 1/(len(null)+1))."""
+    null = np.asarray(null, float)
+    return _normal_sf((obs - float(null.mean())) / max(float(null.std(ddof=1)), 1e-9))
+
+
 # ---------------------------------------------------------------- candidates
 
 
@@ -467,10 +474,15 @@ def _prove(model: LoopModel, op, pv, n_est: int, before: dict, other=None):
     after = _heldout(model, op, pv, n_est)
     gain = _diff(after["fitness"], before["fitness"])
     kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
+    return after, gain, kgain, _residual_cross_correlation(model, op, pv, n_est, other)
+
+
+def _residual_cross_correlation(model: LoopModel, op, pv, n_est: int, other=None) -> dict:
+    """The input cross-correlation test of `model`'s (AR(2)-whitened) estimation
+    residual, with `other` (in PV units) removed first."""
     sim = np.asarray(_jit_scored(model, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
     resid = pv - sim if other is None else pv - sim - other
-    cc = cross_correlation(op[:n_est], ar_whiten(resid[:n_est], 2)[0])
-    return after, gain, kgain, cc
+    return cross_correlation(op[:n_est], ar_whiten(resid[:n_est], 2)[0])
 
 
 def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: DiagnoseSettings, say):
@@ -530,8 +542,7 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
         rows = Tb[np.isfinite(Tb[:, i]) & np.isfinite(Tb[:, i + 2])]
         if len(rows) < 3:
             return None
-        mean, std = float(rows[:, i].mean()), max(float(rows[:, i].std(ddof=1)), 1e-9)
-        p = min(1.0, families * _normal_sf((T[i] - mean) / std))
+        p = min(1.0, families * _null_tail(T[i], rows[:, i]))
         sig_f = p <= settings.alpha and T[i] > 0
         label = "Kano valve" if effect == "stiction" else "deadband"
         ev = {"statistic": round(float(T[i]), 3), "p_value": round(p, 4),
@@ -782,7 +793,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     T_op, op_losses = (np.asarray(v) for v in characteristic_statistics(op_in_j, recs, b_p, a_p, c0, d0, w_fit))
     p_op = 1.0
     if T_op[0] > 0:
-        p_op = min(1.0, len(names) * _normal_sf((T_op[0] - T_op[1:].mean()) / max(float(T_op[1:].std(ddof=1)), 1e-9)))
+        p_op = min(1.0, len(names) * _null_tail(T_op[0], T_op[1:]))
     by_op = p_op < pvals["valve_characteristic"]
     pvals["valve_characteristic"] = min(1.0, 2.0 * min(p_op, pvals["valve_characteristic"]))
 
@@ -834,7 +845,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         recs = jnp.asarray(np.stack([resid] + pv_boot) / sy)
         w_h = (t >= n_est + 50).astype(opj.dtype)
         lr = np.log(np.asarray(_band_statistics(recs, c, d, w_h, 1.0 / float(period))))
-        p_h = _normal_sf((lr[0] - lr[1:].mean()) / max(float(lr[1:].std(ddof=1)), 1e-9))
+        p_h = _null_tail(lr[0], lr[1:])
         ev.update(heldout_band_log_ratio=round(float(lr[0]), 3), heldout_band_null_median=round(
             float(np.median(lr[1:])), 3), heldout_band_p_value=round(p_h, 4))
         if p_h > settings.alpha:
@@ -1018,16 +1029,15 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
                    "heldout_gain": round(_diff(after2["fitness"], before["fitness"]), 3),
                    "gain_over_first_block": round(gain2, 3), "spread": round(g_std, 3)}
             ok2 = gain2 > max(0.5, g_std)
-            if not ok2 and _prove(both, op, pv, n_est, before)[3]["passes"]:
+            if not ok2 and _residual_cross_correlation(both, op, pv, n_est)["passes"]:
                 # the same route as a first block's: a band that persists held out
                 ok2 = narrow_band(ev2, params2, gain2, zw, c2, d2, Pk, base=f"the {verdict} model")
                 if ok2:
                     both, after2 = model, ordered[0].heldout_after
             ev2["note"] = f"second block, on top of {verdict}" + (f"; {ev2['note']}" if "note" in ev2 else "")
-            if not ok2:  # significant, but proved nothing held out: reported, not accepted
-                findings.append(Finding("external_oscillation", params2, ev2, before, after2, False, both))
-            else:
-                findings.append(Finding("external_oscillation", params2, ev2, before, after2, True, both))
+            # reported either way; accepted only when it proved itself held out
+            findings.append(Finding("external_oscillation", params2, ev2, before, after2, bool(ok2), both))
+            if ok2:
                 findings = [f_ for f_ in findings if not (f_.effect == "external_oscillation" and "with" not in
                                                           f_.parameters)]
                 model = both
