@@ -41,13 +41,17 @@ def lfilter(b, a, x: Float[Array, " time"], zi=None) -> Float[Array, " time"]:
 
 def steady_state(b, a, x0, dtype=None):
     """Initial state of [`jaxstiction.lfilter`][] that holds the output at its
-    steady value for a constant input `x0` (as `scipy.signal.lfilter_zi * x0`)."""
+    steady value for a constant input `x0` (as `scipy.signal.lfilter_zi * x0`).
+
+    An integrating filter ($A(1) = 0$) has no steady state for a constant input other
+    than 0; it is then started from rest (output 0), from which it ramps."""
     dtype = dtype or jnp.result_type(x0)
     b = jnp.asarray(b, dtype)
     a = jnp.asarray(a, dtype)
     b, a, n = _pad(b, a)
-    gain = jnp.sum(b) / jnp.sum(a)
-    y0 = gain * x0
+    a1 = jnp.sum(a)
+    integrating = a1 == 0
+    y0 = jnp.where(integrating, 0.0, jnp.sum(b) / jnp.where(integrating, 1.0, a1) * x0)
     # z_k = sum_{j>k} (b_j x0 - a_j y0)
     terms = b[1:] * x0 - a[1:] * y0
     return jnp.cumsum(terms[::-1])[::-1]

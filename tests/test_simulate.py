@@ -50,7 +50,7 @@ def np_lfilter(b, a, x, x_pre=0.0, delay=0):
     with the input equal to `x_pre` before t = 0 and the output at its steady state
     B(1)/A(1) * x_pre there."""
     x = np.asarray(x, float)
-    y_pre = sum(b) / sum(a) * x_pre
+    y_pre = sum(b) / sum(a) * x_pre if x_pre else 0.0
     y = np.zeros_like(x)
     for t in range(len(x)):
         acc = sum(b[i] * (x[t - delay - i] if t - delay - i >= 0 else x_pre) for i in range(len(b)))
@@ -308,6 +308,20 @@ def test_simulate_matches_difference_equation(b, a, delay, op_offset, pv_offset)
                                rtol=0, atol=0)
     if delay:
         np.testing.assert_allclose(out[:delay], ref[0], rtol=1e-12)  # still at rest
+
+
+def test_integrating_process():
+    """A level loop (A(1) = 0) starts from rest at OP = op_offset and runs in closed loop."""
+    b, a = (0.0, 0.05), (1.0, -1.0)
+    op = walk_op()
+    model = LoopModel(chain=(), process=LinearProcess(b=b, a=a), op_offset=float(op[0]), pv_offset=10.0)
+    ref = 10.0 + np_lfilter(b, a, op - op[0])
+    np.testing.assert_allclose(np.asarray(model.simulate(jnp.asarray(op))), ref, rtol=1e-12, atol=1e-10)
+    plant = LoopModel(chain=(Kano(4.0, 1.0),), process=LinearProcess(b=b, a=a), noise=NoiseModel(d=(1.0, -0.5)),
+                      op_offset=50.0, pv_offset=100.0)
+    rec = simulate_loop(plant, experiment(kc=(2.05, -2.0, 0.0), sp_amplitude=5.0), jr.PRNGKey(0), N)
+    assert np.all(np.isfinite(np.asarray(rec.pv))) and np.std(np.asarray(rec.op)) > 1.0
+    assert abs(float(rec.nsr) - 0.05) < 1e-3
 
 
 def test_simulate_with_chain_and_output_blocks():
