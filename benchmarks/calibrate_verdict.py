@@ -3,6 +3,7 @@
     python benchmarks/calibrate_verdict.py                # 6 loops per kind, seeds 0-5
     python benchmarks/calibrate_verdict.py --seeds 6-11   # other loops
     python benchmarks/calibrate_verdict.py --json
+    python benchmarks/calibrate_verdict.py --plants diverse --seeds 0-23   # other processes
 
 Kinds (1500 samples each, the paper's process and noise colouring, 5 % noise power;
 half of the loops follow a GBN setpoint (±20, switching with probability 0.05), half
@@ -16,6 +17,13 @@ a setpoint that rarely moves (±5, probability 0.004), as most plant loops do):
   samples, amplitude drawn per loop);
 - `deadband`: a deadband (backlash) of 1-6 %: a valve band without slip, which the
   Kano fit cannot tell from a stickband, so it counts as a valve band to detect.
+
+With `--plants diverse` every loop gets its own process instead of the paper's (a
+fast flow loop, a slow loop with dead time, a second-order loop or an integrating
+level loop), its own SIMC-tuned PI, noise colour and level, operating point, PV
+units, length, and on a third of the loops a slow drift (see `make_diverse`). The
+verdict's thresholds were never set on these loops: they measure how far its
+calibration carries to other processes.
 
 Each loop goes through `jaxstiction.screen_loops` (the batched estimate and the
 verdict, exactly as `jaxstiction screen`). Prints one row per loop (held-out gain of
@@ -39,7 +47,18 @@ import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
 from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
-from jaxstiction import Deadband, Experiment, Kano, make_loop, simulate_loop, Sinusoid  # noqa: E402
+from jaxstiction import (  # noqa: E402
+    Deadband,
+    Drift,
+    Experiment,
+    Kano,
+    LinearProcess,
+    LoopModel,
+    make_loop,
+    NoiseModel,
+    simulate_loop,
+    Sinusoid,
+)
 from jaxstiction._scenarios import nominal_model  # noqa: E402
 from jaxstiction._screen import screen_loops, ScreenSettings, Settings  # noqa: E402
 
@@ -72,11 +91,111 @@ def make(kind, seed):
     return make_loop(np.asarray(rec.op), np.asarray(rec.pv)), truth, sp
 
 
+PLANT_TYPES = ("flow", "fopdt", "second_order", "integrating")
+
+
+def _closed_loop_radius(b, a, k0, k1):
+    """Largest closed-loop pole radius of B/A under the velocity PI k0, k1 (linear valve)."""
+    n = max(len(a) + 1, len(b) + 1)
+    den = np.zeros(n)
+    den[: len(a)] += a
+    den[1: len(a) + 1] -= a
+    den[: len(b)] += k0 * np.asarray(b)
+    den[1: len(b) + 1] += k1 * np.asarray(b)
+    return float(np.max(np.abs(np.roots(np.trim_zeros(den, "b")))))
+
+
+def make_diverse(kind, seed):
+    """A loop of `kind` on a process drawn per loop (not the paper's one):
+
+    - process: a fast first-order flow loop (pole 0.3-0.8, delay 1-2), a slow first-order
+      loop with dead time (pole 0.9-0.98, delay 2-8), a second-order loop (two real
+      poles 0.5-0.9, delay 1-3) or an integrating level loop (pole 1, delay 1-4);
+    - PI tuned by SIMC (Skogestad 2003) with a closed-loop time constant lambda of
+      0.5-3 times the delay (`tight`: 0.05-0.3 times, underdamped but stable);
+    - noise: AR(1) with pole 0-0.95, 1-20 % of the noise-free PV's power, a slow
+      random-walk drift on a third of the loops of every kind;
+    - OP around 25-75 %, PV around 0-200 in its own units, setpoint steps moving OP
+      by 2-15 % (GBN on even seeds, a rarely moving setpoint on odd ones);
+    - 1000, 1500 or 2000 samples.
+    """
+    rng = np.random.default_rng(50_000 + 1000 * KINDS.index(kind) + seed)
+    ptype = PLANT_TYPES[rng.integers(len(PLANT_TYPES))]
+    d_op = float(rng.uniform(2.0, 15.0))
+    sp_amp = float(rng.uniform(2.0, 50.0))
+    if ptype == "integrating":
+        delay = int(rng.integers(1, 5))
+        kp_proc = sp_amp / d_op / float(rng.uniform(10.0, 60.0))  # PV units per sample per % OP
+        b, a = (kp_proc,), (1.0, -1.0)
+        theta, tau = delay + 0.5, None
+    else:
+        gain = sp_amp / d_op
+        if ptype == "flow":
+            poles, delay = (float(rng.uniform(0.3, 0.8)),), int(rng.integers(1, 3))
+        elif ptype == "fopdt":
+            poles, delay = (float(rng.uniform(0.9, 0.98)),), int(rng.integers(2, 9))
+        else:
+            poles, delay = tuple(sorted(rng.uniform(0.5, 0.9, 2), reverse=True)), int(rng.integers(1, 4))
+        a = np.poly(poles)
+        b = (gain * float(np.sum(a)),)
+        a = tuple(float(x) for x in a)
+        # First-order-plus-delay approximation (Skogestad's half rule) for the tuning.
+        taus = [-1.0 / np.log(p) for p in poles]
+        tau = taus[0] + (taus[1] / 2 if len(taus) > 1 else 0.0)
+        theta = delay + 0.5 + (taus[1] / 2 if len(taus) > 1 else 0.0)
+    lam_lo, lam_hi = (0.05, 0.3) if kind == "tight" else (0.5, 3.0)
+    for _ in range(200):
+        lam = float(rng.uniform(lam_lo, lam_hi)) * theta
+        if tau is None:
+            kc, ti = 1.0 / (b[0] * (lam + theta)), 4.0 * (lam + theta)
+        else:
+            kc, ti = tau / (gain * (lam + theta)), min(tau, 4.0 * (lam + theta))
+        k0, k1 = kc * (1.0 + 1.0 / ti), -kc
+        bd = (0.0,) * delay + tuple(b)
+        radius = _closed_loop_radius(bd, a, k0, k1)
+        if radius < 0.995:
+            break
+        lam_lo, lam_hi = lam_lo * 1.2, lam_hi * 1.2
+    op0, pv0 = float(rng.uniform(25.0, 75.0)), float(rng.uniform(0.0, 200.0))
+    rare = seed % 2 == 1
+    sp, switch = (sp_amp, 0.05) if not rare else (sp_amp / 4, 0.004)
+    nsr, noise_pole = float(np.exp(rng.uniform(np.log(0.01), np.log(0.2)))), float(rng.uniform(0.0, 0.95))
+    chain, output = [], []
+    truth = {"plant": ptype, "delay": delay, "lambda/theta": round(float(lam / theta), 2), "nsr": round(nsr, 3),
+             "noise_pole": round(noise_pole, 2)}
+    if kind in ("stiction", "small_slip"):
+        S = float(rng.uniform(2.0, 20.0))
+        J = float(S * (rng.uniform(0.25, 1.0) if kind == "stiction" else rng.uniform(0.02, 0.25)))
+        chain.append(Kano(S, J))
+        truth.update(S=round(S, 2), J=round(J, 2))
+    elif kind == "external":
+        amp, period = float(rng.uniform(0.1, 0.5)) * sp_amp, float(rng.uniform(10.0, 100.0))
+        output.append(Sinusoid(amp, period))
+        truth.update(amplitude=round(amp, 2), period=round(period, 1))
+    elif kind == "deadband":
+        d = float(rng.uniform(1.0, 6.0))
+        chain.append(Deadband(d))
+        truth.update(width=round(d, 2))
+    if rng.uniform() < 1 / 3:
+        step = float(rng.uniform(0.002, 0.02)) * sp_amp
+        output.append(Drift(step, jr.key_data(jr.PRNGKey(10_000 + seed))))
+        truth.update(drift=round(step, 3))
+    n = int(rng.choice([1000, 1500, 2000]))
+    plant = LoopModel(chain=tuple(chain), process=LinearProcess(b=(0.0,) * delay + tuple(b), a=a),
+                      noise=NoiseModel(c=(1.0,), d=(1.0, -noise_pole)), op_offset=op0, pv_offset=pv0,
+                      output=tuple(output))
+    exp = Experiment(kc=(k0, k1, 0.0), sp_amplitude=sp, sp_switch_prob=switch, nsr=nsr)
+    rec = simulate_loop(plant, exp, jr.PRNGKey(seed), n)
+    return make_loop(np.asarray(rec.op), np.asarray(rec.pv)), truth, (0.0 if rare else 20.0)
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=seeds_arg, default=list(range(6)))
     p.add_argument("--kinds", default=",".join(KINDS))
     p.add_argument("--json", action="store_true")
+    p.add_argument("--plants", choices=("paper", "diverse"), default="paper",
+                   help="the paper's process for every loop, or a process drawn per loop (see make_diverse)")
     p.add_argument("--full-search", action="store_true",
                    help="the estimator's full Kano search (PhysicalSettings()) instead of the screen's lighter one")
     args = p.parse_args()
@@ -87,7 +206,7 @@ def main():
     loops, meta = {}, {}
     for kind in kinds:
         for s in args.seeds:
-            loop, truth, sp = make(kind, s)
+            loop, truth, sp = (make if args.plants == "paper" else make_diverse)(kind, s)
             name = f"{kind}-{s}"
             loops[name] = loop
             meta[name] = dict(kind=kind, seed=s, setpoint="GBN" if sp > 10 else "rare", truth=truth)
@@ -101,7 +220,8 @@ def main():
                                                    "evidence_estimation", "evidence_prediction",
                                                    "evidence_prediction_estimation", "slip_evidence", "slip_identified",
                                                    "slip_evidence_estimation", "band_fraction", "S", "J",
-                                                   "oscillation", "period_samples", "fitness")}})
+                                                   "oscillation", "period_samples", "fitness", "fitness_kano",
+                                                   "fitness_linear", "fitness_deadband")}})
     rows.sort(key=lambda r: (kinds.index(r["kind"]), r["seed"]))
     tp = sum(r["kind"] in BAND and r["stiction_detected"] for r in rows)
     pos = sum(r["kind"] in BAND for r in rows)
@@ -127,11 +247,21 @@ def main():
               f"{f(r['band_fraction']):>6} {f(r['S']):>6} {f(r['J']):>6} {f(r['oscillation']):>5} "
               f"{f(r['period_samples'], 1):>6} {'STICKY' if r['stiction_detected'] else '-':<8} {r['cause']}"
               + (" (slip identified)" if r["slip_identified"] else "")
-              + ("" if r["status"] == "ok" else f"  [{r['status']}]"))
+              + ("" if r["status"] == "ok" else f"  [{r['status']}]")
+              + (f"  {r['truth']}" if args.plants == "diverse" else ""))
     print(f"\nstiction detected on {tp}/{pos} loops with a valve band, not detected on {tn}/{neg} others: "
           f"balanced accuracy {bacc:.2f}; {len(rows)} loops in {dt:.0f} s")
     print("per kind, detected / slip identified / loops: "
           + ", ".join(f"{k} {detected[k]}/{slips[k]}/{total[k]}" for k in kinds))
+    if args.plants == "diverse":
+        parts = []
+        for pt in PLANT_TYPES:
+            rs = [r for r in rows if r["truth"]["plant"] == pt]
+            hit = sum(r["kind"] in BAND and bool(r["stiction_detected"]) for r in rs)
+            fa = sum(r["kind"] not in BAND and bool(r["stiction_detected"]) for r in rs)
+            parts.append(f"{pt} {hit}/{sum(r['kind'] in BAND for r in rs)} found, "
+                         f"{fa}/{sum(r['kind'] not in BAND for r in rs)} false alarms")
+        print("per process: " + "; ".join(parts))
 
 
 if __name__ == "__main__":
