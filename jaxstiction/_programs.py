@@ -5,7 +5,9 @@ compilation, but a new process still traces and lowers `estimate` first: ~4.5 s 
 CHEM23 fit. The command line therefore also keeps `estimate`, exported with
 `jax.export` for one record shape and one `Settings`, next to that cache. A later
 process deserialises it (milliseconds) and the compilation cache supplies the
-compiled program.
+compiled program. The program also simulates the chosen and the paper's model over
+the whole record (what [`jaxstiction.fit`][]'s report shows): traced apart, those
+two simulations cost another ~2 s of a new process.
 
 An entry is keyed by the package's own source, the JAX and jaxlib versions, the
 float64 switch, the settings and the record's shape; anything that fails to load is
@@ -27,6 +29,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._criteria import simulate_scored
 from ._estimate import _estimate, estimate, LoopFit, Settings
 from ._loop import Loop
 
@@ -62,11 +65,17 @@ def _is_struct(x):
     return isinstance(x, jax.ShapeDtypeStruct)
 
 
+def _fit_and_simulate(loop: Loop, settings: Settings):
+    fit = _estimate(loop, settings)
+    sims = tuple(simulate_scored(m, loop.op, loop.pv, loop.mask, settings.score)[0] for m in (fit.model, fit.paper))
+    return fit, sims
+
+
 def _export(loop: Loop, settings: Settings):
     skeleton = {}
 
     def flat(op, pv, mask, ts):
-        out = _estimate(Loop(op=op, pv=pv, mask=mask, ts=ts), settings)
+        out = _fit_and_simulate(Loop(op=op, pv=pv, mask=mask, ts=ts), settings)
         skeleton["fit"] = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype) if eqx.is_array(x) else x, out)
         return jax.tree.leaves(eqx.filter(out, eqx.is_array))
 
@@ -75,7 +84,7 @@ def _export(loop: Loop, settings: Settings):
     return exported, skeleton["fit"]
 
 
-def _call(call, skeleton, loop: Loop) -> LoopFit:
+def _call(call, skeleton, loop: Loop) -> tuple[LoopFit, tuple]:
     leaves = call(loop.op, loop.pv, loop.mask, loop.ts)
     dynamic, static = eqx.partition(skeleton, _is_struct, is_leaf=_is_struct)
     return eqx.combine(jax.tree.unflatten(jax.tree.structure(dynamic, is_leaf=_is_struct), leaves), static)
@@ -95,11 +104,13 @@ def _load(path: pathlib.Path):
     return jax.export.deserialize(bytearray(blob)), skeleton
 
 
-def estimate_cached(loop: Loop, settings: Settings = Settings()) -> LoopFit:
-    """[`jaxstiction.estimate`][], from an exported program on disk when the
-    application has enabled the cache (see the module docstring); the same result."""
+def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFit, tuple | None]:
+    """`(fit, simulations)`: [`jaxstiction.estimate`][] and the simulations of its
+    chosen and its paper's model over the whole record (`simulate_scored`), from an
+    exported program on disk when the application has enabled the cache (see the
+    module docstring); the same results. Without the cache, `simulations` is `None`."""
     if _where is None:
-        return estimate(loop, settings)
+        return estimate(loop, settings), None
     key = _key(loop, settings)
     if key in _loaded:
         return _call(*_loaded[key], loop)
@@ -114,7 +125,7 @@ def estimate_cached(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         try:
             entry = _export(loop, settings)
         except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
-            return estimate(loop, settings)
+            return estimate(loop, settings), None
         try:
             _save(path, *entry)
         except Exception:  # e.g. a read-only cache or no `flatbuffers`: not saved

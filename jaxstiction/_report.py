@@ -164,14 +164,17 @@ def _valve_picture(fit: LoopFit, settings: Settings):
     return ug, lo + (upc - lvl) * scale, lo + (dnc - lvl) * scale, b / scale, a
 
 
-def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, settings: Settings = Settings()) -> FitReport:
+def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, settings: Settings = Settings(),
+           simulations=None) -> FitReport:
     """Read a single (unbatched) [`jaxstiction.LoopFit`][] out for people, with the
-    record `op`, `pv` it was fitted on (real samples only)."""
+    record `op`, `pv` it was fitted on (real samples only); `simulations`, the chosen
+    and the paper's model simulated over it, when already computed."""
     op = np.asarray(op, float)
     pv = np.asarray(pv, float)
-    opj, pvj = jnp.asarray(op), jnp.asarray(pv)
-    whole = jnp.ones_like(opj)
-    pv_sim, pv_sim_paper = (np.asarray(v) for v in _simulations(fit.model, fit.paper, opj, pvj, whole, settings.score))
+    if simulations is None:
+        opj, pvj = jnp.asarray(op), jnp.asarray(pv)
+        simulations = _simulations(fit.model, fit.paper, opj, pvj, jnp.ones_like(opj), settings.score)
+    pv_sim, pv_sim_paper = (np.asarray(v) for v in simulations)
     ug, up, down, pb, pa = _valve_picture(fit, settings)
     step = np.asarray(step_response(jnp.asarray(pb), jnp.asarray(pa), 60))
     kind = KINDS[int(fit.kind)]
@@ -259,5 +262,5 @@ def fit(op, pv, *, ts: float = 1.0, validate: float = 1 / 3, name: str = "loop",
         raise ValueError(f"`validate` must be in [0, 1), got {validate}")
     settings = dataclasses.replace(settings, validate=float(validate)) if settings.validate != validate else settings
     op, pv = checked(op, pv, name, settings)
-    result = estimate_cached(make_loop(op, pv, ts), settings)
-    return report(result, op, pv, name=name, ts=ts, settings=settings)
+    result, simulations = estimate_cached(make_loop(op, pv, ts), settings)
+    return report(result, op, pv, name=name, ts=ts, settings=settings, simulations=simulations)
