@@ -137,6 +137,11 @@ def _kano_path(S, J, op):
     return Kano(S, J)(op)
 
 
+@eqx.filter_jit  # one cached program instead of ~25 small ones compiled op by op
+def _spline_curves(valve, ug, lo, hi):
+    return valve_curves(valve.beta, scale_input(ug, lo, hi), valve.knots, valve.knot_mask)
+
+
 def _valve_picture(fit: LoopFit, settings: Settings):
     """Valve curves in % of OP and the process in PV units per % of valve travel."""
     lo, hi = (float(v) for v in np.asarray(fit.op_range))
@@ -153,8 +158,7 @@ def _valve_picture(fit: LoopFit, settings: Settings):
         # x_hat = 2 (valve - lo) / (hi - lo) - 1
         return ug, up, down, b * 2.0 / (hi - lo), a
     valve = fit.model.chain[1]
-    upc, dnc = (np.asarray(c) for c in valve_curves(valve.beta, scale_input(jnp.asarray(ug), lo, hi), valve.knots,
-                                                    valve.knot_mask))
+    upc, dnc = (np.asarray(c) for c in _spline_curves(valve, jnp.asarray(ug), lo, hi))
     gain = b.sum() / a.sum()
     if gain < 0:  # show the valve opening with OP; the sign sits in the process
         upc, dnc, b = -upc, -dnc, -b
