@@ -288,7 +288,8 @@ def read_nominal(source: str | os.PathLike | Mapping[str, Any]) -> LoopModel:
     unreadable file or invalid JSON, a missing key, a non-numeric value, `a[0] ≠ 1`,
     an empty `b` or `a`, a negative or non-integer delay, an unknown valve model or
     block, a missing or out-of-range parameter, or an unstable process (a root of
-    z^na + a₁z^(na−1) + … with modulus ≥ 1: `nominal model is unstable: pole at 1.05`).
+    z^na + a₁z^(na−1) + … with modulus ≥ 1: `nominal model is unstable: pole at 1.05`;
+    a pole at exactly 1, an integrating process, is named as such).
     """
     data, loc = _load(source)
     _ts(data, loc)
@@ -320,6 +321,12 @@ def read_nominal(source: str | os.PathLike | Mapping[str, Any]) -> LoopModel:
         poles = np.roots(a)
         if poles.size:
             worst = poles[int(np.argmax(np.abs(poles)))]
+            if abs(worst - 1.0) < 1e-9:
+                raise LoopDataError(
+                    f"nominal model is integrating (pole at 1, as a level loop): its simulation from OP drifts "
+                    f"without bound, so it cannot be the reference of a diagnosis; poles must lie inside the "
+                    f"unit circle{loc}"
+                )
             if abs(worst) >= 1.0 - 1e-9:
                 raise LoopDataError(
                     f"nominal model is unstable: pole at {_format_pole(complex(worst))} "
