@@ -65,10 +65,16 @@ def _is_struct(x):
     return isinstance(x, jax.ShapeDtypeStruct)
 
 
+@eqx.filter_jit  # one compiled call (cached across processes) rather than op-by-op dispatch
+def simulations_of(fit: LoopFit, op, pv, weights, score):
+    """The chosen and the paper's model of `fit` simulated over the record
+    (`simulate_scored` with `score`), as the report shows them."""
+    return tuple(simulate_scored(m, op, pv, weights, score)[0] for m in (fit.model, fit.paper))
+
+
 def _fit_and_simulate(loop: Loop, settings: Settings):
     fit = _estimate(loop, settings)
-    sims = tuple(simulate_scored(m, loop.op, loop.pv, loop.mask, settings.score)[0] for m in (fit.model, fit.paper))
-    return fit, sims
+    return fit, simulations_of(fit, loop.op, loop.pv, loop.mask, settings.score)
 
 
 def _export(loop: Loop, settings: Settings):

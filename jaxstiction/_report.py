@@ -15,7 +15,7 @@ from ._criteria import simulate_scored
 from ._estimate import LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
 from ._loop import make_loop
-from ._programs import estimate_cached
+from ._programs import estimate_cached, simulations_of
 from ._spline import scale_input, valve_curves
 
 
@@ -127,12 +127,6 @@ class FitReport:
 
 
 @eqx.filter_jit
-def _simulations(model, paper, op, pv, weights, settings):
-    # one compiled call (cached across processes) rather than op-by-op dispatch
-    return simulate_scored(model, op, pv, weights, settings)[0], simulate_scored(paper, op, pv, weights, settings)[0]
-
-
-@eqx.filter_jit
 def _kano_path(S, J, op):
     return Kano(S, J)(op)
 
@@ -177,7 +171,7 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
     pv = np.asarray(pv, float)
     if simulations is None:
         opj, pvj = jnp.asarray(op), jnp.asarray(pv)
-        simulations = _simulations(fit.model, fit.paper, opj, pvj, jnp.ones_like(opj), settings.score)
+        simulations = simulations_of(fit, opj, pvj, jnp.ones_like(opj), settings.score)
     pv_sim, pv_sim_paper = (np.asarray(v) for v in simulations)
     ug, up, down, pb, pa = _valve_picture(fit, settings)
     step = np.asarray(step_response(jnp.asarray(pb), jnp.asarray(pa), 60))

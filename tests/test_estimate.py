@@ -180,7 +180,7 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     without tracing `estimate` again, a corrupt file is rebuilt, and every route
     gives what `estimate` gives. (With the screen's profile, the smaller program: the
     cache does not depend on the settings.)"""
-    from jaxstiction import _programs, _report
+    from jaxstiction import _programs
 
     monkeypatch.setattr(_programs, "_loaded", {})
     _programs.use_program_cache(tmp_path)
@@ -199,8 +199,7 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
         assert exports == [1]
     finally:
         _programs.use_program_cache(None)
-    reference = _report._simulations(no_spline.model, no_spline.paper, loops[0].op, loops[0].pv, loops[0].mask,
-                                     NO_SPLINE.score)
+    reference = _programs.simulations_of(no_spline, loops[0].op, loops[0].pv, loops[0].mask, NO_SPLINE.score)
     for got, sims in (first, loaded, rebuilt):
         for sim, ref in zip(sims, reference):
             np.testing.assert_allclose(sim, ref, rtol=1e-9, atol=1e-9)
