@@ -88,7 +88,7 @@ def make(kind, seed):
     plant = nominal_model(chain=chain, output=output)
     exp = Experiment(kc=kc, sp_amplitude=sp, sp_switch_prob=switch, nsr=0.05)
     rec = simulate_loop(plant, exp, jr.PRNGKey(seed), N)
-    return make_loop(np.asarray(rec.op), np.asarray(rec.pv)), truth, sp
+    return make_loop(np.asarray(rec.op), np.asarray(rec.pv)), truth, "GBN" if sp > 10 else "rare"
 
 
 PLANT_TYPES = ("flow", "fopdt", "second_order", "integrating")
@@ -186,7 +186,15 @@ def make_diverse(kind, seed):
                       output=tuple(output))
     exp = Experiment(kc=(k0, k1, 0.0), sp_amplitude=sp, sp_switch_prob=switch, nsr=nsr)
     rec = simulate_loop(plant, exp, jr.PRNGKey(seed), n)
-    return make_loop(np.asarray(rec.op), np.asarray(rec.pv)), truth, (0.0 if rare else 20.0)
+    return make_loop(np.asarray(rec.op), np.asarray(rec.pv)), truth, "rare" if rare else "GBN"
+
+
+def confusion(rows):
+    """`(valve bands detected, valve bands, false alarms, loops without a band)`."""
+    band = [r["kind"] in BAND for r in rows]
+    hit = [bool(r["stiction_detected"]) for r in rows]
+    return (sum(b and h for b, h in zip(band, hit)), sum(band),
+            sum(h and not b for b, h in zip(band, hit)), len(rows) - sum(band))
 
 
 def main():
@@ -206,10 +214,10 @@ def main():
     loops, meta = {}, {}
     for kind in kinds:
         for s in args.seeds:
-            loop, truth, sp = (make if args.plants == "paper" else make_diverse)(kind, s)
+            loop, truth, setpoint = (make if args.plants == "paper" else make_diverse)(kind, s)
             name = f"{kind}-{s}"
             loops[name] = loop
-            meta[name] = dict(kind=kind, seed=s, setpoint="GBN" if sp > 10 else "rare", truth=truth)
+            meta[name] = dict(kind=kind, seed=s, setpoint=setpoint, truth=truth)
     t0 = time.time()
     results = screen_loops(loops, settings)
     dt = time.time() - t0
@@ -223,10 +231,8 @@ def main():
                                                    "oscillation", "period_samples", "fitness", "fitness_kano",
                                                    "fitness_linear", "fitness_deadband")}})
     rows.sort(key=lambda r: (kinds.index(r["kind"]), r["seed"]))
-    tp = sum(r["kind"] in BAND and r["stiction_detected"] for r in rows)
-    pos = sum(r["kind"] in BAND for r in rows)
-    tn = sum(r["kind"] not in BAND and not r["stiction_detected"] for r in rows)
-    neg = len(rows) - pos
+    tp, pos, fa, neg = confusion(rows)
+    tn = neg - fa
     bacc = 0.5 * (tp / max(pos, 1) + tn / max(neg, 1))
     detected = {k: sum(r["kind"] == k and r["stiction_detected"] for r in rows) for k in kinds}
     slips = {k: sum(r["kind"] == k and bool(r["slip_identified"]) for r in rows) for k in kinds}
@@ -256,11 +262,8 @@ def main():
     if args.plants == "diverse":
         parts = []
         for pt in PLANT_TYPES:
-            rs = [r for r in rows if r["truth"]["plant"] == pt]
-            hit = sum(r["kind"] in BAND and bool(r["stiction_detected"]) for r in rs)
-            fa = sum(r["kind"] not in BAND and bool(r["stiction_detected"]) for r in rs)
-            parts.append(f"{pt} {hit}/{sum(r['kind'] in BAND for r in rs)} found, "
-                         f"{fa}/{sum(r['kind'] not in BAND for r in rs)} false alarms")
+            hit, pos_pt, fa_pt, neg_pt = confusion([r for r in rows if r["truth"]["plant"] == pt])
+            parts.append(f"{pt} {hit}/{pos_pt} found, {fa_pt}/{neg_pt} false alarms")
         print("per process: " + "; ".join(parts))
 
 
