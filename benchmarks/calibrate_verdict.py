@@ -206,10 +206,14 @@ def main():
                    help="the paper's process for every loop, or a process drawn per loop (see make_diverse)")
     p.add_argument("--full-search", action="store_true",
                    help="the estimator's full Kano search (PhysicalSettings()) instead of the screen's lighter one")
+    p.add_argument("--max-delay", type=int, default=None, metavar="N",
+                   help="try process dead times of 1..N samples (Settings.with_max_delay; default 3)")
     args = p.parse_args()
     settings = ScreenSettings()
     if args.full_search:
         settings = ScreenSettings(estimate=Settings(use_spline=False))
+    if args.max_delay is not None:
+        settings = ScreenSettings(estimate=settings.estimate.with_max_delay(args.max_delay))
     kinds = args.kinds.split(",")
     loops, meta = {}, {}
     for kind in kinds:

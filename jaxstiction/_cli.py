@@ -6,6 +6,7 @@ gives a one-line `error: ...` on stderr and exit status 2.
 """
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -72,6 +73,9 @@ def _summary(r) -> str:
             f"J = {r.J:.2f} [{r.J_interval[0]:.2f}, {r.J_interval[1]:.2f}] % "
             f"(physical-model fitness {r.fitness_physical:.2f} %)"
         )
+    if r.delay_at_limit:
+        lines.append(f"  note: the fitted dead time is the longest tried ({r.max_delay} samples); "
+                     "the process may have a longer one (--max-delay)")
     lines.append(f"  converged: {r.converged} (relaxation: {r.relax_steps} sweeps)")
     return "\n".join(lines)
 
@@ -102,6 +106,7 @@ def cmd_demo(args):
 def cmd_fit(args):
     import numpy as np
 
+    from ._estimate import Settings
     from ._read import loop_name, read_loop
     from ._report import fit
 
@@ -110,19 +115,27 @@ def cmd_fit(args):
     op, pv, ts = np.asarray(loop.op), np.asarray(loop.pv), float(loop.ts)
     _log(f"fit: {name}: {op.shape[0]} samples, Ts = {ts:g} s; fitting ...")
     t0 = time.time()
-    r = fit(op, pv, ts=ts, validate=args.validate, name=name)
+    settings = None if args.max_delay is None else Settings().with_max_delay(args.max_delay)
+    r = fit(op, pv, ts=ts, validate=args.validate, name=name, settings=settings)
     _log(f"fit: done in {time.time() - t0:.1f} s")
+    if r.delay_at_limit and args.json:
+        _log(f"fit: note: the fitted dead time is the longest tried ({r.max_delay} samples); the process may "
+             f"have a longer one: try --max-delay {2 * r.max_delay}")
     _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
     _emit(args, r.to_json(), _summary(r))
     return 0
 
 
 def cmd_screen(args):
-    from ._screen import screen, write_screen_outputs
+    from ._screen import screen, ScreenSettings, write_screen_outputs
 
     progress = not args.json and sys.stderr.isatty() and not args.quiet
     t0 = time.time()
-    rep = screen(args.paths, ts=args.ts, progress=progress, scheduler=args.scheduler, pictures=bool(args.out))
+    settings = ScreenSettings()
+    if args.max_delay is not None:
+        settings = dataclasses.replace(settings, estimate=settings.estimate.with_max_delay(args.max_delay))
+    rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
+                 pictures=bool(args.out))
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -207,6 +220,8 @@ def build_parser():
                    help="hold out the last FRACTION for validation (0: validate on the estimation data)")
     f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
     f.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
+    f.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
+                   help="longest process dead time tried, in samples (default 3)")
     f.set_defaults(func=cmd_fit)
     s = sub.add_parser("screen", parents=[common],
                        help="screen loops (files, folders) for sticky valves, ranked; name other causes")
@@ -215,6 +230,8 @@ def build_parser():
     s.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="run the chunks on a Dask cluster (e.g. tcp://host:8786); needs jaxstiction[dask]")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
+                   help="longest process dead time tried, in samples (default 3)")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
@@ -227,6 +244,16 @@ def build_parser():
     g.add_argument("--name", default=None)
     g.set_defaults(func=cmd_diagnose)
     return p
+
+
+def _max_delay(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive whole number of samples, got {text!r}")
+    return n
 
 
 def _compilation_cache():

@@ -10,6 +10,8 @@ spoils nothing else.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -64,6 +66,15 @@ class Settings(eqx.Module):
             raise ValueError(f"`validate` must be in [0, 1), got {self.validate}")
         if not (self.use_spline or self.use_physical):
             raise ValueError("`use_spline` and `use_physical` cannot both be False: no model family left")
+
+    def with_max_delay(self, n: int) -> Settings:
+        """A copy whose spline and physical fits (and the verdict's nulls) try input
+        delays of 1 to `n` samples instead of 1 to 3: for a process whose dead time is
+        longer than 3 samples. The search's cost grows with `n`."""
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"`max_delay` must be a positive whole number of samples, got {n!r}")
+        return dataclasses.replace(self, spline=dataclasses.replace(self.spline, max_delay=n),
+                                   physical=dataclasses.replace(self.physical, max_delay=n))
 
 
 # deadband widths tried, as multiples of the physical fit's S

@@ -64,6 +64,12 @@ def test_unreadable_and_missing_file(tmp_path):
     _assert_one_line_error(run("fit", str(tmp_path / "nope.csv")), "nope.csv")
 
 
+@pytest.mark.parametrize("cmd", ["fit", "screen"])
+def test_max_delay_must_be_a_positive_count(tmp_path, cmd):
+    res = run(cmd, str(tmp_path / "x.csv"), "--max-delay", "0")
+    assert res.returncode == 2 and "--max-delay" in res.stderr and "positive whole number" in res.stderr
+
+
 def test_fit_json_contract_on_chem23(isdb, tmp_path):
     res = run("fit", str(isdb / "CHEM23.csv"), "--validate", "0", "--json", "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr

@@ -13,7 +13,7 @@ from jaxstiction._filters import freq_response
 from jaxstiction._hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
 from jaxstiction._physical import _arx_design, arx_loss, fit_physical, valve_from
 from jaxstiction._reduce import LowOrder, reduce_model, welch
-from jaxstiction._scenarios import nominal_model, paper_experiment
+from jaxstiction._scenarios import nominal_model, p_experiment, paper_experiment
 
 
 SPL = js.SplineSettings(arx_order=5, knot_counts=(3, 5), max_order=2, max_delay=2, welch_segment=64, relax_steps=150,
@@ -89,6 +89,35 @@ def test_physical_fit_finds_s_and_j(sticky):
     assert abs(float(fit.S) - 10.0) < 0.6
     assert abs(float(fit.J) - 2.0) < 0.8
     assert float(fit.S_interval[0]) <= float(fit.S) <= float(fit.S_interval[1])
+
+
+def test_physical_fit_tries_longer_dead_times():
+    """A sticky loop whose process has a dead time of 6 samples: with the default
+    delays (1-3) the fit ends at the longest tried, which is what the report flags;
+    with `Settings.with_max_delay(8)` it finds a longer delay and fits better. A
+    delay below 1 is refused."""
+    plant = js.LoopModel(chain=(js.Kano(10.0, 2.0),),
+                         process=js.LinearProcess(b=(0.0,) * 6 + (1.0, 0.5), a=(1.0, -1.5, 0.7)),
+                         noise=js.NoiseModel(c=(1.0,), d=(1.0, -0.9)), op_offset=50.0)
+    rec = js.simulate_loop(plant, p_experiment(), jr.PRNGKey(4), 600)
+    op, pv = rec.op, rec.pv
+    y = (pv - pv.mean()) / pv.std()
+    w = jnp.ones_like(y)
+    small = js.PhysicalSettings(num_S=31, num_J=6, starts=3, refine=7, refine_S=21, final=3, line=11, rounds=1,
+                                polish_starts=2, init_count=3, oe_steps=20)
+    fits = []
+    for settings in (js.Settings(physical=small), js.Settings(physical=small).with_max_delay(8)):
+        assert settings.spline.max_delay == settings.physical.max_delay
+        pset = settings.physical
+        fits.append(jax.jit(lambda op, y, w, lo, hi: fit_physical(op, y, w, lo, hi, pset))(op, y, w, op.min(),
+                                                                                           op.max()))
+    assert int(fits[0].delay) == 3
+    assert 5 <= int(fits[1].delay) <= 7
+    assert float(fits[1].v_oe) < 0.95 * float(fits[0].v_oe)
+    assert abs(float(fits[1].S) - 10.0) < 1.0
+    for bad in (0, -2, 2.5, True):
+        with pytest.raises(ValueError, match="max_delay"):
+            js.Settings().with_max_delay(bad)
 
 
 def test_arx_criterion_equals_numpy_lstsq(sticky):
