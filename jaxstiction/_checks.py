@@ -110,7 +110,7 @@ def check_loop(
     3. an empty record;
     4. NaN or inf values (which column, how many, first index);
     5. fewer than `min_length` samples
-       (`needs at least {min_length} samples for the chosen orders, got N`);
+       (`needs at least {min_length} samples for the chosen orders and delays, got N`);
     6. a constant OP (spread ≤ 1e-9·(1 + |mean|)): stiction cannot be identified
        without valve movement;
     7. a constant PV.
@@ -139,7 +139,7 @@ def check_loop(
             raise LoopDataError(where + msg)
     if n_op < min_length:
         raise LoopDataError(
-            f"{where}needs at least {int(min_length)} samples for the chosen orders, "
+            f"{where}needs at least {int(min_length)} samples for the chosen orders and delays, "
             f"got {n_op}"
         )
     if require_variation:

@@ -32,7 +32,7 @@ class RESULTS(optx.RESULTS):  # pyright: ignore
     """Outcome codes of [`jaxstiction.estimate`][]: optimistix's solver codes plus
     data codes. `RESULTS[fit.result]` gives the message of an unbatched code."""
 
-    too_short = "the record is too short for the chosen orders"
+    too_short = "the record is too short for the chosen orders and delays"
     constant_op = "OP is constant: stiction cannot be identified without valve movement"
     constant_pv = "PV is constant: the process response cannot be identified"
     nonfinite_data = "the record has NaN or inf values"
@@ -82,11 +82,12 @@ DEADBAND_WIDTHS = (0.5, 0.7, 0.85, 1.0, 1.2)
 
 
 def min_length(settings: Settings) -> int:
-    """Fewest estimation samples the chosen orders can be fitted from."""
+    """Fewest estimation samples the chosen orders and delays can be fitted from."""
     s = settings.spline
     p = 2 * (max(s.knot_counts) + 2)
-    # the relaxation's lagged regressor matrix has n (p + 1) columns
-    return max(s.arx_order * (p + 1) + 50, 2 * s.welch_segment)
+    # the relaxation's lagged regressor matrix has n (p + 1) columns; a delay is
+    # resolved only from a record many times longer
+    return max(s.arx_order * (p + 1) + 50, 2 * s.welch_segment, 20 * max(s.max_delay, settings.physical.max_delay))
 
 
 class LoopFit(eqx.Module):

@@ -261,7 +261,7 @@ def fit(op, pv, *, ts: float = 1.0, validate: float = 1 / 3, name: str = "loop",
       argument).
 
     **Raises:** `ValueError` (a `LoopDataError`) for bad data: mismatched lengths,
-    NaN/inf, constant OP or PV, or a record too short for the chosen orders.
+    NaN/inf, constant OP or PV, or a record too short for the chosen orders and delays.
     """
     settings = Settings() if settings is None else settings
     if not 0.0 <= validate < 1.0:

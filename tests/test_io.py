@@ -376,7 +376,7 @@ def test_check_loop_problems():
     )
     raises_one_line(r"`PV` is constant", check_loop, OP, np.zeros(N))
     raises_one_line(
-        r"needs at least 100 samples for the chosen orders, got 50",
+        r"needs at least 100 samples for the chosen orders and delays, got 50",
         check_loop,
         OP,
         PV,

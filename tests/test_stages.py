@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
+from jaxstiction._estimate import min_length
 from jaxstiction._filters import freq_response
 from jaxstiction._hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
 from jaxstiction._physical import _arx_design, arx_loss, fit_physical, valve_from
@@ -118,6 +119,9 @@ def test_physical_fit_tries_longer_dead_times():
     for bad in (0, -2, 2.5, True):
         with pytest.raises(ValueError, match="max_delay"):
             js.Settings().with_max_delay(bad)
+    # a delay is resolved only from a record many times longer
+    assert min_length(js.Settings().with_max_delay(60)) == 1200
+    assert min_length(js.Settings().with_max_delay(8)) == min_length(js.Settings())
 
 
 def test_arx_criterion_equals_numpy_lstsq(sticky):
