@@ -125,12 +125,17 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
     converged = bool(fit.result == RESULTS.successful)
     ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
     cause = CAUSES[int(ver.cause)]
+    max_delay = settings.physical.max_delay if int(fit.kind) == 1 else settings.spline.max_delay
+    note = RESULTS[fit.result] if not converged else ""
+    if ok and int(fit.delay) >= max_delay:
+        note = (f"{note}; " if note else "") + (f"the fitted dead time is the longest tried ({max_delay} samples): "
+                                                "the process may have a longer one (--max-delay)")
     rec = {
         "name": name,
         "file": file,
         "status": "ok" if ok else RESULTS[fit.result],
         "converged": converged,
-        "note": "" if converged else RESULTS[fit.result],
+        "note": note,
         "samples": int(op.shape[0]),
         "Ts": float(ts),
         "stiction_detected": bool(ver.stiction_detected),
@@ -153,6 +158,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "oscillation": _r(ver.oscillation),
         "period_samples": _r(ver.period, 1),
         "model": ("spline", "physical")[int(fit.kind)],
+        "delay": int(fit.delay),
     }
     if pictures and ok:
         from ._report import report

@@ -137,6 +137,10 @@ def test_screen_entries_equal_single_fits(fleet, screened):
     assert r["stiction_detected"] == bool(v.stiction_detected)
     assert r["slip_identified"] == bool(v.slip_identified)
     assert r["evidence"] == pytest.approx(float(v.evidence), abs=1e-3)
+    # the fitted delay, and a note when it is the longest tried
+    assert r["delay"] == int(f.delay)
+    longest = SMALL.physical.max_delay if int(f.kind) == 1 else SMALL.spline.max_delay
+    assert ("longest tried" in r["note"]) == (int(f.delay) >= longest)
 
 
 @pytest.mark.parametrize("kano, deadband, sticky, slip", [
