@@ -73,9 +73,8 @@ def _summary(r) -> str:
             f"J = {r.J:.2f} [{r.J_interval[0]:.2f}, {r.J_interval[1]:.2f}] % "
             f"(physical-model fitness {r.fitness_physical:.2f} %)"
         )
-    if r.delay_at_limit:
-        lines.append(f"  note: the fitted dead time is the longest tried ({r.max_delay} samples); "
-                     "the process may have a longer one (--max-delay)")
+    if r.delay_note:
+        lines.append(f"  note: {r.delay_note}")
     lines.append(f"  converged: {r.converged} (relaxation: {r.relax_steps} sweeps)")
     return "\n".join(lines)
 
@@ -118,9 +117,8 @@ def cmd_fit(args):
     settings = None if args.max_delay is None else Settings().with_max_delay(args.max_delay)
     r = fit(op, pv, ts=ts, validate=args.validate, name=name, settings=settings)
     _log(f"fit: done in {time.time() - t0:.1f} s")
-    if r.delay_at_limit and args.json:
-        _log(f"fit: note: the fitted dead time is the longest tried ({r.max_delay} samples); the process may "
-             f"have a longer one: try --max-delay {2 * r.max_delay}")
+    if r.delay_note and args.json:
+        _log(f"fit: note: {r.delay_note}")
     _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
     _emit(args, r.to_json(), _summary(r))
     return 0

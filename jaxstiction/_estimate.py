@@ -81,6 +81,16 @@ class Settings(eqx.Module):
 DEADBAND_WIDTHS = (0.5, 0.7, 0.85, 1.0, 1.2)
 
 
+def delay_note(delay, kind, settings: Settings) -> str:
+    """A note when the fitted `delay` of a model of `kind` (0 spline, 1 physical) is
+    the longest its family tried (the process may have a longer dead time); else ""."""
+    longest = settings.physical.max_delay if int(kind) == 1 else settings.spline.max_delay
+    if int(delay) < longest:
+        return ""
+    return (f"the fitted dead time is the longest tried ({longest} samples): the process may have a longer one "
+            "(--max-delay, Settings.with_max_delay)")
+
+
 def min_length(settings: Settings) -> int:
     """Fewest estimation samples the chosen orders and delays can be fitted from."""
     s = settings.spline

@@ -12,7 +12,7 @@ import numpy as np
 from ._blocks import Kano
 from ._checks import check_loop
 from ._criteria import simulate_scored
-from ._estimate import LoopFit, min_length, RESULTS, Settings
+from ._estimate import delay_note, LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
 from ._loop import make_loop
 from ._programs import estimate_cached, simulations_of
@@ -62,7 +62,7 @@ class FitReport:
     num_knots: int
     order: int
     delay: int
-    max_delay: int
+    delay_note: str
     arx_order: int
     band_percent: float
     S: float | None
@@ -97,12 +97,6 @@ class FitReport:
         if k is None:
             return np.asarray(simulate_scored(model, op, pv, jnp.ones_like(op))[0])
         return np.asarray(model.predict(op, pv, k))
-
-    @property
-    def delay_at_limit(self) -> bool:
-        """The fitted dead time is the longest tried (`max_delay`): the process may
-        have a longer one (refit with `Settings().with_max_delay(n)`)."""
-        return self.delay >= self.max_delay
 
     def to_json(self) -> dict:
         """The `fit` object of the JSON contract."""
@@ -209,7 +203,7 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
         num_knots=int(fit.num_knots),
         order=int(fit.order),
         delay=int(fit.delay),
-        max_delay=settings.physical.max_delay if kind == "physical" else sset.max_delay,
+        delay_note=delay_note(fit.delay, fit.kind, settings),
         arx_order=sset.arx_order,
         band_percent=float(fit.band_percent),
         S=float(fit.S) if physical else None,

@@ -26,7 +26,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._estimate import estimate, RESULTS, Settings
+from ._estimate import delay_note, estimate, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
 from ._physical import PhysicalSettings
 from ._verdict import CAUSES, usable, verdict, VerdictSettings
@@ -125,17 +125,13 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
     converged = bool(fit.result == RESULTS.successful)
     ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
     cause = CAUSES[int(ver.cause)]
-    max_delay = settings.physical.max_delay if int(fit.kind) == 1 else settings.spline.max_delay
-    note = RESULTS[fit.result] if not converged else ""
-    if ok and int(fit.delay) >= max_delay:
-        note = (f"{note}; " if note else "") + (f"the fitted dead time is the longest tried ({max_delay} samples): "
-                                                "the process may have a longer one (--max-delay)")
+    notes = [RESULTS[fit.result] if not converged else "", delay_note(fit.delay, fit.kind, settings) if ok else ""]
     rec = {
         "name": name,
         "file": file,
         "status": "ok" if ok else RESULTS[fit.result],
         "converged": converged,
-        "note": note,
+        "note": "; ".join(n for n in notes if n),
         "samples": int(op.shape[0]),
         "Ts": float(ts),
         "stiction_detected": bool(ver.stiction_detected),
