@@ -1,4 +1,4 @@
-r"""Model criteria: FOE (22), and simulation fitness (34) scored the way
+r"""Model criteria: FOE (22), BIC, and simulation fitness (34) scored the way
 system-identification tools score it, with the initial state estimated first."""
 
 from __future__ import annotations
@@ -16,6 +16,14 @@ def foe(loss, count, dof):
     r"""Final output error (22): $\frac{N + d}{N - d} V$ for loss $V$ on $N$ samples
     with $d$ free parameters."""
     return (count + dof) / (count - dof) * loss
+
+
+def bic(loss, count, dof):
+    r"""Schwarz's Bayesian information criterion of a Gaussian fit: $N \ln V + d \ln N$
+    for loss $V$ on $N$ samples with $d$ free parameters (lower is better). Its
+    penalty grows with $N$, so between two model families it picks the true one as
+    the record grows, where FOE (an AIC) keeps a fixed chance of the larger one."""
+    return count * jnp.log(loss) + dof * jnp.log(count)
 
 
 class ScoreSettings(eqx.Module):
