@@ -1,7 +1,7 @@
 r"""`estimate`: one loop, end to end, as one pure jitted function.
 
 Spline candidates (direction rule × knot count: relaxation, reduction, ASYC, polish,
-FOE), the physical Kano model, the choice between them by FOE, the paper's literal
+FOE), the physical Kano model, the choice between them by BIC, the paper's literal
 method for reference, and the validation scores, all inside one `jit`, with no
 host round trip, so `eqx.filter_vmap(estimate)` batches whole loops. Data problems
 become [`jaxstiction.RESULTS`][] codes, never exceptions, so one bad loop in a batch

@@ -71,11 +71,18 @@ def test_max_delay_must_be_a_positive_count(tmp_path, cmd):
 
 
 def test_fit_json_contract_on_chem23(isdb, tmp_path):
+    """CHEM23 by the paper's protocol (validated on its estimation data; the paper
+    reports 75.67 %, >= 77 % is asked), through the command line's JSON contract."""
     res = run("fit", str(isdb / "CHEM23.csv"), "--validate", "0", "--json", "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)  # exactly one JSON object on stdout
     assert out["fitness"] >= 77.0
     assert {"fitness", "model", "stiction", "converged"} <= set(out)
+    assert out["converged"] and out["samples"] == {"estimation": 1500, "validation": 0}
+    st = out["stiction"]
+    assert 0 < st["band_percent"] < 100 and st["S_interval"][0] <= st["S"] <= st["S_interval"][1]
+    saved = json.loads((tmp_path / "report.json").read_text())
+    assert saved["fitness"] == out["fitness"]
     assert "band_percent" in out["stiction"]
     # on the estimation data BIC prefers the Kano model (77.3 %; the spline: 78.75 %)
     assert out["model"]["kind"] == "physical" and out["model"]["knots"] == 0

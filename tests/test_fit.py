@@ -1,7 +1,5 @@
-"""The public `fit`: bad input, and the issue's CHEM23 figures (skipped without ISDB)."""
+"""The public `fit`: bad input, and CHEM23 held out (skipped without ISDB)."""
 
-import json
-import math
 
 import numpy as np
 import pytest
@@ -45,33 +43,16 @@ def test_too_short_after_holding_out_validation():
         js.fit(op, pv, validate=0.5)
 
 
-@pytest.fixture(scope="module")
-def chem23(isdb):
+# CHEM23 on its estimation data (the paper's protocol, >= 77 % asked) is checked
+# through the command line, in test_cli.py: one compilation of that program, not two.
+
+
+def test_chem23_held_out_last_third(isdb):
     loop = js.read_loop(isdb / "CHEM23.csv")
-    return loop, js.fit(loop.op, loop.pv, ts=loop.ts, validate=0.0, name="CHEM23")
-
-
-def test_chem23_paper_protocol(chem23):
-    # The paper reports 75.67 % on its estimation data; the issue asks for >= 77 %.
-    loop, r = chem23
-    assert r.n_validation == 0 and r.n_estimation == 1500
-    assert r.fitness >= 77.0
-    assert r.fitness == pytest.approx(float(js.fitness(loop.pv, r.pv_sim)), abs=1e-9)
-    assert r.converged
-    assert math.isfinite(r.band_percent) and 0 < r.band_percent < 100
-    assert r.S is not None and r.S_interval[0] <= r.S <= r.S_interval[1]
-    j = r.to_json()
-    json.dumps(j)  # serialisable
-    for key in ("fitness", "model", "stiction", "converged"):
-        assert key in j
-    assert "band_percent" in j["stiction"] and "knots" in j["model"]
-
-
-def test_chem23_held_out_last_third(chem23):
-    loop, _ = chem23
     r = js.fit(loop.op, loop.pv, ts=loop.ts, validate=1 / 3, name="CHEM23")
     assert r.n_validation == 500
     assert r.fitness >= 76.0
+    assert r.converged and r.S_interval[0] <= r.S <= r.S_interval[1]
     # predict() with the record's PV estimates the initial state as the score does
     sim = r.predict(loop.op, loop.pv)
     assert sim.shape == loop.op.shape and np.all(np.isfinite(sim))
