@@ -80,16 +80,28 @@ def test_spline_candidates_equal_single_candidate_calls(sticky):
 
 
 def test_physical_fit_finds_s_and_j(sticky):
-    """Kano S, J recovered near the truth (10, 2) on a 600-sample noisy loop, with
-    the truth inside or next to the reported intervals."""
+    """Kano S, J recovered near the truth (10, 2) on a 600-sample noisy loop. The
+    wider interval grid (`interval_span`) changes only the intervals: the same point
+    and loss as without it, intervals that contain the narrow ones, and here the truth."""
     op, y, u = sticky
     w = jnp.ones_like(y)
-    pset = js.PhysicalSettings(num_S=31, num_J=6, starts=3, refine=7, refine_S=21, final=3, line=11, rounds=1,
-                               polish_starts=2, init_count=3, oe_steps=20)
-    fit = jax.jit(lambda op, y, w, lo, hi: fit_physical(op, y, w, lo, hi, pset))(op, y, w, op.min(), op.max())
+    fits = []
+    for span in (4.0, 0.0):
+        pset = js.PhysicalSettings(num_S=31, num_J=6, starts=3, refine=7, refine_S=21, final=3, line=11, rounds=1,
+                                   polish_starts=2, init_count=3, oe_steps=20, interval_span=span)
+        fitted = jax.jit(lambda op, y, w, lo, hi: fit_physical(op, y, w, lo, hi, pset))
+        fits.append(fitted(op, y, w, op.min(), op.max()))
+    fit, narrow = fits
     assert abs(float(fit.S) - 10.0) < 0.6
     assert abs(float(fit.J) - 2.0) < 0.8
+    for name in ("S", "J", "v_oe"):
+        assert float(getattr(fit, name)) == float(getattr(narrow, name))
+    for name in ("S_interval", "J_interval"):
+        wide, nar = np.asarray(getattr(fit, name)), np.asarray(getattr(narrow, name))
+        assert wide[0] <= nar[0] and nar[1] <= wide[1]
     assert float(fit.S_interval[0]) <= float(fit.S) <= float(fit.S_interval[1])
+    assert float(fit.S_interval[0]) <= 10.0 <= float(fit.S_interval[1])
+    assert float(fit.J_interval[0]) <= 2.0 <= float(fit.J_interval[1])
 
 
 def test_physical_fit_tries_longer_dead_times():
