@@ -186,6 +186,9 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
         "foe": {RULES[r]: [None if not np.isfinite(v) else round(float(v), 6) for v in foe[r]] for r in range(2)},
         "knot_counts": list(sset.knot_counts),
         "fitness": {RULES[r]: [_r(v) for v in np.asarray(fit.candidate_fitness)[r]] for r in range(2)},
+        # the choice between the families (lower BIC wins; FOE for reference)
+        "families": {k: {"foe": _r(getattr(fit, f"foe_{k}"), 6), "bic": _r(getattr(fit, f"bic_{k}"), 3)}
+                     for k in ("spline", "physical")},
     }
     return FitReport(
         name=name,

@@ -168,6 +168,10 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
     d = r.to_json()
     assert d["status"] == "ok" and d["model"]["kind"] == "physical"
     assert d["stiction"]["S"] == pytest.approx(float(r.S), abs=1e-3)
+    # the family with the lower BIC is the one chosen
+    fam = r.candidates["families"]
+    assert fam["physical"]["bic"] is not None and fam["physical"]["foe"] > 0
+    assert fam["spline"]["bic"] is None or fam["physical"]["bic"] < fam["spline"]["bic"]
     op = np.asarray(lp.op).copy()
     op[5] = np.nan
     with pytest.raises(ValueError, match="NaN"):
