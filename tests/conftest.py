@@ -1,8 +1,5 @@
-import atexit
 import os
 import pathlib
-import shutil
-import tempfile
 
 from jaxstiction._cli import _lean_compiler
 
@@ -16,15 +13,15 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 
-# The command-line tests run `python -m jaxstiction`, which keeps compiled programs
-# in a persistent cache (by default in the user's ~/.cache). The suite gives them a
-# cache of its own, removed when the run ends, so it neither writes to the user's
-# folder nor passes only because an earlier run left programs there; this is also
-# what a fresh machine (CI) sees. Set JAXSTICTION_CACHE yourself to reuse a cache.
+# The command-line tests run `python -m jaxstiction`, which keeps compiled programs in
+# a persistent cache. The suite gives them a cache folder of its own (beside the
+# user's, not in it: the suite's programs never mix with the user's), kept between
+# runs as the user's is: on a fresh machine the first run compiles everything, later
+# runs load what did not change. Set JAXSTICTION_CACHE to use another folder, or
+# `off` to compile everything every time.
 if "JAXSTICTION_CACHE" not in os.environ:
-    _cache = tempfile.mkdtemp(prefix="jaxstiction-test-cache-")
-    os.environ["JAXSTICTION_CACHE"] = _cache
-    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+    _base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    os.environ["JAXSTICTION_CACHE"] = os.path.join(_base, "jaxstiction", "test-xla")
 
 # Identification needs float64; the library never sets it, the tests do.
 jax.config.update("jax_enable_x64", True)

@@ -423,7 +423,8 @@ def _diagnosed_without_nominal(case):
     short = js.make_loop(np.asarray(loop.op)[:1500], np.asarray(loop.pv)[:1500])
     joint = js.Settings(use_spline=False,
                         physical=js.PhysicalSettings(num_S=41, num_J=6, starts=3, refine=9, refine_S=31, final=3,
-                                                     line=15, rounds=1, polish_starts=2, init_count=3, oe_steps=20))
+                                                     line=15, rounds=1, polish_starts=2, init_count=3, oe_steps=20,
+                                                     interval_span=0.0))
     return sc, js.diagnose(short, None, js.DiagnoseSettings(bootstrap=19, joint=joint, joint_bootstrap=5))
 
 

@@ -18,13 +18,14 @@ from jaxstiction._scenarios import nominal_model, paper_experiment
 
 # Reduced settings: the same pipeline with smaller grids and fewer candidates (one knot
 # count: each count is its own traced branch, and compilation is most of this file's
-# time; several counts are tested in test_stages), so the suite stays fast. (The full
-# settings are exercised by the benchmarks and CLI tests.)
+# time; several counts, and the wider interval grid, are tested in test_stages), so
+# the suite stays fast. (The full settings are exercised by the benchmarks and CLI
+# tests.)
 SMALL = js.Settings(
     spline=js.SplineSettings(arx_order=5, knot_counts=(4,), max_order=2, max_delay=2, welch_segment=64,
                              relax_steps=150, polish_steps=20),
     physical=js.PhysicalSettings(num_S=61, num_J=6, starts=4, refine=9, refine_S=41, final=3, line=21, rounds=2,
-                                 polish_starts=3, init_count=3, oe_steps=20),
+                                 polish_starts=3, init_count=3, oe_steps=20, interval_span=0.0),
     score=js.ScoreSettings(init_count=20),
     validate=0.25,
 )
