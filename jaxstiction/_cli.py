@@ -87,9 +87,15 @@ def cmd_demo(args):
     t0 = time.time()
     payload, vr, clean = paper_sim_case(args.seed)
     _log(f"demo: done in {time.time() - t0:.1f} s")
+    # the summary of the report re-targeted at the validation record, whose first
+    # line would count no estimation samples: say what was fitted and what scored
+    rest = _summary(vr).split("\n", 1)[1]
+    first = (f"loop {vr.name}: fitted on {payload['fit']['samples']['estimation']} estimation samples, "
+             f"scored on an independent {vr.n_validation}-sample validation record, Ts = {vr.ts:g} s")
     text = "\n".join(
         [
-            _summary(vr),
+            first,
+            rest,
             "validation on an independent 1500-sample record (initial state estimated from its opening samples):",
             f"  fitness vs measured PV {payload['fitness_validation']:.2f} %, vs noise-free PV "
             f"{payload['fitness_noise_free']:.2f} %, ceiling {payload['ceiling']:.2f} %",
