@@ -54,9 +54,11 @@ def _figures(args, result, **kw):
     return write_fit_figures(result, Path(args.out), **kw)
 
 
-def _summary(r) -> str:
+def _summary(r, head: str | None = None) -> str:
+    """The text summary of a fit report; `head` replaces its first line (which counts
+    the estimation and validation samples)."""
     lines = [
-        f"loop {r.name}: {r.n_estimation} estimation + {r.n_validation} validation samples, Ts = {r.ts:g} s",
+        head or f"loop {r.name}: {r.n_estimation} estimation + {r.n_validation} validation samples, Ts = {r.ts:g} s",
         (
             f"  model: spline valve, direction rule {r.direction_rule}, {r.num_knots} knots, "
             if r.model_kind == "spline"
@@ -87,15 +89,13 @@ def cmd_demo(args):
     t0 = time.time()
     payload, vr, clean = paper_sim_case(args.seed)
     _log(f"demo: done in {time.time() - t0:.1f} s")
-    # the summary of the report re-targeted at the validation record, whose first
-    # line would count no estimation samples: say what was fitted and what scored
-    rest = _summary(vr).split("\n", 1)[1]
-    first = (f"loop {vr.name}: fitted on {payload['fit']['samples']['estimation']} estimation samples, "
-             f"scored on an independent {vr.n_validation}-sample validation record, Ts = {vr.ts:g} s")
+    # `vr` is the report re-targeted at the validation record (no estimation samples
+    # of its own): say what was fitted and what was scored
+    head = (f"loop {vr.name}: fitted on {payload['fit']['samples']['estimation']} estimation samples, "
+            f"scored on an independent {vr.n_validation}-sample validation record, Ts = {vr.ts:g} s")
     text = "\n".join(
         [
-            first,
-            rest,
+            _summary(vr, head),
             "validation on an independent 1500-sample record (initial state estimated from its opening samples):",
             f"  fitness vs measured PV {payload['fitness_validation']:.2f} %, vs noise-free PV "
             f"{payload['fitness_noise_free']:.2f} %, ceiling {payload['ceiling']:.2f} %",

@@ -83,7 +83,6 @@ def test_fit_json_contract_on_chem23(isdb, tmp_path):
     assert 0 < st["band_percent"] < 100 and st["S_interval"][0] <= st["S"] <= st["S_interval"][1]
     saved = json.loads((tmp_path / "report.json").read_text())
     assert saved["fitness"] == out["fitness"]
-    assert "band_percent" in out["stiction"]
     # on the estimation data BIC prefers the Kano model (77.3 %; the spline: 78.75 %)
     assert out["model"]["kind"] == "physical" and out["model"]["knots"] == 0
     assert out["stiction"]["band_percent"] == out["stiction"]["S"]
