@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from ._criteria import simulate_scored
-from ._estimate import _estimate, estimate, LoopFit, Settings
+from ._estimate import _estimate, estimate, estimation_parts, LoopFit, Settings
 from ._loop import Loop
 
 
@@ -67,9 +67,20 @@ def _is_struct(x):
 
 @eqx.filter_jit  # one compiled call (cached across processes) rather than op-by-op dispatch
 def simulations_of(fit: LoopFit, op, pv, weights, score):
-    """The chosen and the paper's model of `fit` simulated over the record
-    (`simulate_scored` with `score`), as the report shows them."""
-    return tuple(simulate_scored(m, op, pv, weights, score)[0] for m in (fit.model, fit.paper))
+    """The chosen and the paper's model of `fit` simulated over the record (real
+    samples marked by `weights`), as the report shows them: exactly what was scored.
+    The estimation part is simulated from an initial state estimated on its opening
+    samples; a held-out part restarts from one estimated on its own opening samples
+    (`simulate_scored` with `score`, as the fitness was computed)."""
+    w_est, w_val = estimation_parts(weights, fit.n_estimation, fit.n_validation)
+    held_out = (fit.n_validation > 0) & (w_val > 0)
+
+    def shown(m):
+        whole = simulate_scored(m, op, pv, w_est, score)[0]
+        restart = simulate_scored(m, op, pv, w_val, score)[0]
+        return jnp.where(held_out, restart, whole)
+
+    return tuple(shown(m) for m in (fit.model, fit.paper))
 
 
 def _fit_and_simulate(loop: Loop, settings: Settings):
