@@ -17,11 +17,19 @@ import pytest  # noqa: E402
 # a persistent cache. The suite gives them a cache folder of its own (beside the
 # user's, not in it: the suite's programs never mix with the user's), kept between
 # runs as the user's is: on a fresh machine the first run compiles everything, later
-# runs load what did not change. Set JAXSTICTION_CACHE to use another folder, or
-# `off` to compile everything every time.
+# runs load what did not change. The tests' own process compiles into the same
+# folder (XLA's cache is keyed by the compiled program itself, so nothing stale is
+# ever loaded). Set JAXSTICTION_CACHE to use another folder, or `off` to compile
+# everything every time.
 if "JAXSTICTION_CACHE" not in os.environ:
     _base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     os.environ["JAXSTICTION_CACHE"] = os.path.join(_base, "jaxstiction", "test-xla")
+_cache = os.environ["JAXSTICTION_CACHE"]
+if _cache.lower() not in ("off", "0", "no", "false"):
+    os.makedirs(_cache, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", _cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 # Identification needs float64; the library never sets it, the tests do.
 jax.config.update("jax_enable_x64", True)

@@ -187,18 +187,10 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     without tracing `estimate` again, a corrupt file is rebuilt, and every route
     gives what `estimate` gives. (With the screen's profile, the smaller program: the
     cache does not depend on the settings.)"""
-    from jax._src import compilation_cache  # private, but the only way to switch it within a process
-
     from jaxstiction import _programs
 
-    # as the command line runs it: with XLA's persistent compilation cache, so the
-    # loaded and the rebuilt program are not compiled again
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_persistent_cache_min_entry_size_bytes")
-    before = {n: getattr(jax.config, n) for n in names}
-    for n, v in zip(names, (str(tmp_path / "xla"), 0.5, 0)):
-        jax.config.update(n, v)
-    compilation_cache.reset_cache()
+    # (the suite's conftest turns on XLA's persistent compilation cache, as the
+    # command line does, so the loaded and the rebuilt program are not compiled again)
     monkeypatch.setattr(_programs, "_loaded", {})
     _programs.use_program_cache(tmp_path)
     try:
@@ -216,9 +208,6 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
         assert exports == [1]
     finally:
         _programs.use_program_cache(None)
-        for n, v in before.items():
-            jax.config.update(n, v)
-        compilation_cache.reset_cache()
     reference = _programs.simulations_of(no_spline, loops[0].op, loops[0].pv, loops[0].mask, NO_SPLINE.score)
     for got, sims in (first, loaded, rebuilt):
         for sim, ref in zip(sims, reference):
