@@ -1,9 +1,18 @@
 """Small shared helpers with no better home."""
 
+import math
 import os
 
 import jax
 import jax.numpy as jnp
+
+
+def json_number(v, nd: int = 3):
+    """`v` as a JSON number rounded to `nd` decimals; `None` for `None`, NaN or inf."""
+    if v is None:
+        return None
+    v = float(v)
+    return round(v, nd) if math.isfinite(v) else None
 
 
 def release_programs_near_map_limit(share: float = 0.5) -> bool:

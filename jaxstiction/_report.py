@@ -15,6 +15,7 @@ from ._criteria import simulate_scored
 from ._estimate import delay_note, LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
 from ._loop import make_loop
+from ._misc import json_number as _r
 from ._programs import estimate_cached, simulations_of
 from ._spline import scale_input, valve_curves
 
@@ -32,13 +33,6 @@ def crossing(u, f, level):
     i = idx[len(idx) // 2]
     t = (level - f[i]) / (f[i + 1] - f[i])
     return u[i] + t * (u[i + 1] - u[i])
-
-
-def _r(v, nd=3):
-    if v is None:
-        return None
-    v = float(v)
-    return round(v, nd) if np.isfinite(v) else None
 
 
 @dataclasses.dataclass(frozen=True)

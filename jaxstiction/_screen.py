@@ -28,6 +28,7 @@ import numpy as np
 
 from ._estimate import delay_note, estimate, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
+from ._misc import json_number as _r
 from ._physical import PhysicalSettings
 from ._verdict import CAUSES, usable, verdict, VerdictSettings
 
@@ -113,11 +114,6 @@ def _batch(loops: Loop, settings: Settings, vset: VerdictSettings):
 
 def _one_line(e: BaseException) -> str:
     return " ".join(f"{type(e).__name__}: {e}".split())[:300]
-
-
-def _r(v, nd=3):
-    v = float(v)
-    return round(v, nd) if math.isfinite(v) else None
 
 
 def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool) -> dict:
