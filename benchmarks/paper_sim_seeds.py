@@ -46,9 +46,9 @@ import numpy as np  # noqa: E402
 from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 from jaxstiction._blocks import Kano  # noqa: E402
+from jaxstiction._candidates import _loop_model  # noqa: E402
 from jaxstiction._criteria import simulate_scored  # noqa: E402
 from jaxstiction._demo import paper_sim_case  # noqa: E402
-from jaxstiction._diagnose import _loop_model  # noqa: E402
 from jaxstiction._filters import fitness  # noqa: E402
 from jaxstiction._physical import fit_oe  # noqa: E402
 from jaxstiction._scenarios import make_scenario  # noqa: E402

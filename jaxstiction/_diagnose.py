@@ -6,7 +6,7 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
 
 1. **Locate** ([`jaxstiction._locate`]): tests on the simulation residual and on the
    one-step error of a refitted noise model.
-2. **Name.** Every input-side candidate family (stiction, deadband, dead time, valve
+2. **Name** ([`jaxstiction._candidates`]). Every input-side candidate family (stiction, deadband, dead time, valve
    characteristic, travel limit, actuator lag) is added to the nominal model on a
    grid of its parameters, the linear part refitted by least squares at each point
    (all points in one `vmap`); an external oscillation is searched at every
@@ -20,7 +20,8 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
    chi-bar-squared null. A valve characteristic is also tested by the operating
    point the nominal states ([`jaxstiction._characteristic`]: an equal-percentage
    block added with nothing refitted), which the refit of B and the offset hides.
-3. **Model and prove.** Each significant family's best block is added to the
+3. **Model and prove** ([`jaxstiction._proof`]; without a nominal model, stiction
+   also jointly with the linear part, [`jaxstiction._joint`]). Each significant family's best block is added to the
    nominal: input blocks with B and the offset refitted, output blocks (oscillation,
    drift) to the nominal as it is. It is scored on the held-out samples (simulation
    fitness from an estimated initial state, one-step and k-step prediction errors).
@@ -35,57 +36,59 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-import optimistix as optx
 
-from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, Sinusoid, TravelLimits
+from ._blocks import EqualPercentage, Sinusoid
+from ._candidates import (
+    _arma11,
+    _family_paths,
+    _fit_sinusoid,
+    _input_candidates,
+    _linear_valve_nominal,
+    _quantisation,
+    _refit_b,
+    _statistics,
+)
 from ._characteristic import characteristic_statistics, rangeability_profile
-from ._criteria import simulate_scored
 from ._drift import drift_noise_model, drift_test
-from ._estimate import estimate, Settings
+from ._estimate import Settings
 from ._filters import lagged, lfilter
-from ._linalg import is_stable, lstsq
-from ._locate import ar_whiten, cross_correlation, locate, spectrum_lines, whiteness
-from ._loop import make_loop
+from ._joint import _joint_stiction
+from ._linalg import lstsq
+from ._locate import ar_whiten, locate, spectrum_lines, whiteness
 from ._misc import release_programs_near_map_limit
 from ._models import LinearProcess, LoopModel, NoiseModel
-from ._physical import _delay, fit_oe
-from ._reduce import fit_noise_model
+from ._proof import (
+    _add_output,
+    _band_statistics,
+    _bootstrap_noise,
+    _diff,
+    _heldout,
+    _jit_kstep_rms,
+    _jit_scored,
+    _jit_scores,
+    _noise_records,
+    _normal_sf,
+    _null_tail,
+    _prove,
+    _residual_cross_correlation,
+    _revised,
+    _shift_phase,
+    Finding,
+    K_STEP,
+)
 from ._screen import SCREEN_ESTIMATE
-from ._verdict import usable
 
 
 VERDICTS = ("none", "stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag",
             "external_oscillation", "drift", "quantization")
 OUTPUT_FAMILIES = ("external_oscillation", "drift")
 INPUT_FAMILIES = ("stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag")
-K_STEP = 10
-
-
-class Finding(eqx.Module):
-    """One named effect: its block's parameters (with an interval from the grid's
-    likelihood profile), the evidence, and held-out figures before (refitted linear
-    valve) and after (with the block)."""
-
-    effect: str = eqx.field(static=True)
-    parameters: dict
-    evidence: dict
-    heldout_before: dict
-    heldout_after: dict
-    accepted: bool = eqx.field(static=True)
-    model: LoopModel | None = None
-
-    def to_json(self) -> dict:
-        return {"effect": self.effect, "parameters": self.parameters, "evidence": self.evidence,
-                "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
-                "accepted": self.accepted}
 
 
 class Diagnosis(eqx.Module):
@@ -141,493 +144,6 @@ class DiagnoseSettings:
     seed: int = 0
     joint: Settings = SCREEN_ESTIMATE
     joint_bootstrap: int = 9
-
-
-def _diff(a, b) -> float:
-    """`a - b` for held-out figures that may be missing (None: not finite)."""
-    if a is None:
-        return -math.inf
-    if b is None:
-        return math.inf
-    return a - b
-
-
-def _normal_sf(zv: float) -> float:
-    return 0.5 * math.erfc(zv / math.sqrt(2.0))
-
-
-def _null_tail(obs: float, null) -> float:
-    """P(statistic >= `obs`) under a normal approximation of the bootstrap values
-    `null` (so the p-value is not limited to 1/(len(null)+1))."""
-    null = np.asarray(null, float)
-    return _normal_sf((obs - float(null.mean())) / max(float(null.std(ddof=1)), 1e-9))
-
-
-# ---------------------------------------------------------------- candidates
-
-
-def _stack(blocks):
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *blocks)
-
-
-def _input_candidates(op: np.ndarray, grid: int):
-    """Per input family: `(blocks stacked or list, parameter table)`. Grids are
-    relative to the OP's range on the estimation samples."""
-    lo, hi = float(np.min(op)), float(np.max(op))
-    span = max(hi - lo, 1e-9)
-    widths = span * np.geomspace(0.005, 1.0, grid)
-    fr = (0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
-    kano = [(s, s * f) for s in widths for f in fr]
-    # travel limits every 3 percentiles of OP, across most of its range: a valve
-    # held at its limit winds the controller up, so OP can sit beyond the limit for
-    # over half the record (P4 seed 2: the limit, 52.5 %, lies below the median OP,
-    # where the 7 quantiles used before, 0.5-0.98, stopped; its nearest, 55.9 %,
-    # fell short of the held-out spread)
-    qs_hi = np.quantile(op, np.linspace(0.1, 0.99, 30))
-    qs_lo = np.quantile(op, np.linspace(0.01, 0.9, 30))
-    lags = (0.2, 0.4, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95)
-    Rs = (3.0, 5.0, 10.0, 20.0, 30.0, 50.0, 80.0)
-    return {
-        "stiction": ([Kano(s, j) for s, j in kano], [{"S": s, "J": j} for s, j in kano]),
-        "deadband": ([Deadband(w) for w in widths], [{"width": w} for w in widths]),
-        "dead_time": ([DeadTime(k) for k in range(1, 6)], [{"samples": k} for k in range(1, 6)]),
-        "valve_characteristic": ([EqualPercentage(R) for R in Rs], [{"R": R} for R in Rs]),
-        "saturation": ([TravelLimits(hi=h) for h in qs_hi] + [TravelLimits(lo=v) for v in qs_lo],
-                       [{"hi": float(h)} for h in qs_hi] + [{"lo": float(v)} for v in qs_lo]),
-        "actuator_lag": ([ActuatorLag(a) for a in lags], [{"a": a} for a in lags]),
-    }
-
-
-def _paths(op, blocks) -> jnp.ndarray:
-    """Valve paths of a list of blocks over `op` (one vmap per block type/shape)."""
-    out = []
-    for blk in blocks:
-        out.append(blk(op))
-    return jnp.stack(out)
-
-
-@eqx.filter_jit
-def _paths_stacked(op, blocks):
-    """Valve paths of blocks stacked along a leading axis (one program per block type)."""
-    return jax.vmap(lambda b: b(op))(blocks)
-
-
-@jax.jit
-def _paths_kano(op, S, J):
-    return jax.vmap(lambda s, j: Kano(s, j)(op))(S, J)
-
-
-def _family_paths(op_j, fams):
-    """(G, N) valve paths for every input candidate, and each family's slice."""
-    rows, slices, start = [], {}, 0
-    for name, (blocks, _) in fams.items():
-        if name == "stiction":
-            S = jnp.asarray([b.S for b in blocks])
-            J = jnp.asarray([b.J for b in blocks])
-            P = _paths_kano(op_j, S, J)
-        elif name in ("deadband", "actuator_lag", "valve_characteristic", "saturation"):
-            P = _paths_stacked(op_j, _stack(blocks))
-        else:
-            P = _paths(op_j, blocks)
-        rows.append(P)
-        slices[name] = slice(start, start + P.shape[0])
-        start += P.shape[0]
-    return jnp.concatenate(rows), slices
-
-
-def _whitened_loss(x, yf, w, filt, ones_f, delay, nb: int):
-    r"""Prediction-error loss with the baseline's poles $A_0$ and noise model $D/C$
-    held: $\min_{B, c} \sum w\,[\tfrac{D}{C}(y - \tfrac{B}{A_0} q^{-d} x - c)]^2$, linear
-    in $B$ and $c$ (least squares by QR). Returns the sum of squares and the residual."""
-    xd = _delay(filt(x), delay)
-    X = jnp.concatenate([lagged(xd, nb), ones_f[:, None]], axis=1)
-    th = lstsq(X * w[:, None], yf * w, 1e-10)
-    r = w * (yf - X @ th)
-    return jnp.sum(r**2), r, th
-
-
-@eqx.filter_jit
-def _refit_b(x, y, w, a0, c, d, delay, nb: int):
-    """$B$ and the offset of $y = \tfrac{B}{A_0} q^{-d} x + c$ for one valve path,
-    by the same whitened least squares as the grid."""
-    yf = lfilter(d, c, y)
-    ones_f = lfilter(d, c, jnp.ones_like(y))
-    cd = jnp.convolve(c, a0)
-    return _whitened_loss(x, yf, w, lambda v: lfilter(d, cd, v), ones_f, delay, nb)[2]
-
-
-def _arma11(r, w):
-    """`(C, D)` of an ARMA(1,1) noise model fitted to residual `r` (weights `w`), or
-    `None` when the fit failed or a polynomial left the unit circle."""
-    nm = fit_noise_model(r, w, order=1)
-    one = jnp.ones(1, r.dtype)
-    c, d = jnp.concatenate([one, nm.c]), jnp.concatenate([one, nm.d])
-    if bool(nm.result == optx.RESULTS.successful) and bool(is_stable(c)) and bool(is_stable(d)):
-        return c, d
-    return None
-
-
-@eqx.filter_jit
-def _statistics(y, paths, base_x, w, a0, c, d, delay, nb: int, fmin, fmax):
-    """Every candidate's loss for one output record `y` (scaled): the input paths
-    `(G,)`, the best external oscillation (by the periodogram of the baseline's
-    whitened residual on a 8x zero-padded grid) and the linear-valve baseline. All
-    losses are means over the weighted samples; also the best frequency."""
-    n = jnp.sum(w)
-    cd = jnp.convolve(c, a0)
-    yf = lfilter(d, c, y)
-    ones_f = lfilter(d, c, jnp.ones_like(y))
-
-    def filt(x):
-        return lfilter(d, cd, x)
-
-    v_in = jax.lax.map(lambda x: _whitened_loss(x, yf, w, filt, ones_f, delay, nb)[0], paths, batch_size=16)
-    v0, r0, _ = _whitened_loss(base_x, yf, w, filt, ones_f, delay, nb)
-    m = 8 * y.shape[0]
-    R = jnp.fft.rfft(r0, n=m)
-    f = jnp.arange(R.shape[0]) / m
-    red = jnp.where((f >= fmin) & (f <= fmax), 2 * jnp.abs(R) ** 2 / n, 0.0)
-    k = jnp.argmax(red)
-    return v_in / n, (v0 - red[k]) / n, v0 / n, f[k]
-
-
-# ------------------------------------------------------------------ fitting
-
-
-def _fit_linear(x, y, w, order: int, delays, max_delay: int):
-    """Box–Jenkins fit (first-order noise) of `y` on the valve path `x` for each delay;
-    the best. Scaled inputs and outputs in, scaled model out."""
-    fits = [fit_oe(x, y, w, order, jnp.asarray(d), max_delay, 60) for d in delays]
-    losses = []
-    for m, (c, d), _ in fits:
-        e = lfilter(d, c, y - m.simulate(x, max_delay))
-        losses.append(float(jnp.sum(w * e**2) / jnp.sum(w)))
-    i = int(np.nanargmin(np.where(np.isfinite(losses), losses, np.nan))) if np.any(np.isfinite(losses)) else 0
-    return fits[i], delays[i], losses[i]
-
-
-def _loop_model(chain, oe, noise, max_delay, mu, sy, op_mean, sx, output=()):
-    b, a = oe.linear.polynomials(max_delay)
-    c, d = noise
-    return LoopModel(
-        chain=tuple(chain),
-        process=LinearProcess(b=b * sy / sx, a=a),
-        noise=NoiseModel(c=c, d=d),
-        op_offset=op_mean,
-        pv_offset=mu + sy * oe.offset,
-        output=tuple(output),
-    )
-
-
-def _add_output(model: LoopModel, block) -> LoopModel:
-    """`model` with the output-side `block` added after its own output blocks."""
-    return eqx.tree_at(lambda m: m.output, model, tuple(model.output) + (block,))
-
-
-def _shift_phase(model: LoopModel, n: int) -> LoopModel:
-    """The model seen from sample `n` on (output oscillations keep their phase)."""
-    out = tuple(
-        Sinusoid(b.amplitude, b.period, b.phase + 2 * jnp.pi * n / b.period) if isinstance(b, Sinusoid) else b
-        for b in model.output
-    )
-    return eqx.tree_at(lambda m: m.output, model, out) if out else model
-
-
-def _heldout(model: LoopModel, op, pv, n_est: int) -> dict:
-    """Held-out figures: simulation fitness (initial state estimated on the opening
-    held-out samples), one-step and k-step prediction RMS errors."""
-    opj, pvj = jnp.asarray(op), jnp.asarray(pv)
-    n = len(op)
-    w = (jnp.arange(n) >= n_est).astype(opj.dtype)
-    m_h = _shift_phase(model, n_est)
-    # the held-out part alone: a scored simulation starts at its first scored sample,
-    # so the samples before it change nothing (and cost a third of the time here)
-    _, fit_h = _jit_scored(m_h, opj[n_est:], pvj[n_est:], w[n_est:]) if n_est < n else _jit_scored(m_h, opj, pvj, w)
-    p1 = np.asarray(_jit_predict(model, opj, pvj, 1))
-    pk = np.asarray(_jit_predict(model, opj, pvj, K_STEP))
-    h = slice(n_est + 20, n)
-
-    def rms(e):
-        with np.errstate(all="ignore"):
-            v = float(np.sqrt(np.mean(e**2)))
-        return round(v, 5) if math.isfinite(v) else None
-
-    fit_v = float(fit_h)
-    return {"fitness": round(fit_v, 3) if math.isfinite(fit_v) else None, "one_step_rms": rms(pv[h] - p1[h]),
-            f"k{K_STEP}_step_rms": rms(pv[h] - pk[h])}
-
-
-@eqx.filter_jit
-def _jit_scored(model, op, pv, w):
-    return simulate_scored(model, op, pv, w)
-
-
-@eqx.filter_jit
-def _jit_scores(model, op, pvs):
-    """Fitness of `model` on each record of `pvs` (records, time), whole records scored."""
-    w = jnp.ones_like(op)
-    return jax.vmap(lambda p: simulate_scored(model, op, p, w)[1])(pvs)
-
-
-@eqx.filter_jit
-def _jit_kstep_rms(model, op, pvs, start: int):
-    """RMS k-step prediction error of `model` on each record of `pvs` from sample `start` on."""
-    return jax.vmap(lambda p: jnp.sqrt(jnp.mean((p - model.predict(op, p, K_STEP))[start:] ** 2)))(pvs)
-
-
-@eqx.filter_jit
-def _jit_predict(model, op, pv, k: int):
-    return model.predict(op, pv, k)
-
-
-def _linear_valve_nominal(op, pv, n_est, s: DiagnoseSettings) -> LoopModel:
-    """A nominal model when none is given: linear valve, Box–Jenkins linear part."""
-    op_e, pv_e = op[:n_est], pv[:n_est]
-    mu, sy = float(np.mean(pv_e)), float(np.std(pv_e)) or 1.0
-    om, sx = float(np.mean(op_e)), float(np.std(op_e)) or 1.0
-    x = jnp.asarray((op - om) / sx)
-    y = jnp.asarray((pv - mu) / sy)
-    w = (jnp.arange(len(op)) < n_est).astype(x.dtype)
-    (oe, noise, _), _, _ = _fit_linear(x, y, w, s.order, list(range(1, s.max_delay + 1)), s.max_delay)
-    return _loop_model((), oe, noise, s.max_delay, mu, sy, om, sx)
-
-
-def _fit_sinusoid(z: np.ndarray, n_est: int, period: float) -> tuple[float, float, float]:
-    """Amplitude, period and phase of $A \\sin(2\\pi t / P + \\phi)$ fitted to `z[:n_est]`
-    by least squares (with a constant), the period refined within 1 % of `period`."""
-    t = np.arange(n_est)
-    best = None
-    for P in np.linspace(period * 0.99, period * 1.01, 41):
-        A = np.stack([np.sin(2 * np.pi * t / P), np.cos(2 * np.pi * t / P), np.ones(n_est)], 1)
-        coef, *_ = np.linalg.lstsq(A, z[:n_est], rcond=None)
-        r = float(np.sum((z[:n_est] - A @ coef) ** 2))
-        if best is None or r < best[0]:
-            best = (r, float(P), coef)
-    _, P, coef = best
-    return float(math.hypot(coef[0], coef[1])), P, float(math.atan2(coef[1], coef[0]))
-
-
-def _quantisation(pv: np.ndarray, residual_std: float) -> dict | None:
-    """PV values on a lattice: few distinct levels, all spaced by multiples of one step,
-    and a step that matters (at least a tenth of the residual's standard deviation)."""
-    levels = np.unique(pv)
-    if len(levels) < 3 or len(levels) > max(20, len(pv) // 5):
-        return None
-    d = np.diff(levels)
-    q = float(np.min(d[d > 1e-12 * max(1.0, np.abs(levels).max())])) if np.any(d > 0) else 0.0
-    if q <= 0:
-        return None
-    frac = float(np.mean(np.abs(d / q - np.round(d / q)) < 1e-3))
-    if frac < 0.99 or q < 0.1 * residual_std:
-        return None
-    return {"step": q, "levels": int(len(levels))}
-
-
-# --------------------------------------------------------------- diagnose
-
-
-def _bootstrap_noise(c, d, residual, n_est: int, key, count: int, n: int) -> list[np.ndarray]:
-    """`count` noise records of length `n` from the noise model $C/D$: innovations of
-    the standard deviation that whitening `residual` by $D/C$ leaves on the estimation
-    samples (the first 20 skipped), filtered by $C/D$ after a 300-sample warm-up."""
-    c, d = jnp.asarray(c), jnp.asarray(d)
-    sig = float(np.std(np.asarray(lfilter(d, c, jnp.asarray(residual)))[20:n_est]))
-    return list(np.asarray(_noise_records(c, d, key, sig, count, n)))
-
-
-@functools.partial(jax.jit, static_argnums=(4, 5))
-def _noise_records(c, d, key, sig, count: int, n: int):
-    """(count, n) records of $C/D$ noise: record `b` from `fold_in(key, b)`, 300-sample warm-up dropped."""
-    e = jax.vmap(lambda b: jr.normal(jr.fold_in(key, b), (n + 300,)))(jnp.arange(count)) * sig
-    return jax.vmap(lambda x: lfilter(c, d, x))(e)[:, 300:]
-
-
-@jax.jit
-def _band_statistics(resid, c, d, w, f0):
-    """Narrow-band statistic of each residual record in `resid` `(records, n)`:
-    whitened by $D/C$ and weighted by `w` (0/1), the mean periodogram ordinate (8x
-    zero-padded) within ±10 % of frequency `f0` over the median ordinate in
-    [f0/2, 2 f0] outside that band. The band's mean power holds a line and a
-    wandering narrow-band disturbance alike; a ratio to the band's neighbourhood, so
-    a held-out part whose noise is louder or redder than the estimation part's does
-    not read as a line."""
-    n = resid.shape[1]
-    m = 8 * n
-    f = jnp.arange(m // 2 + 1) / m
-    band = jnp.abs(f - f0) <= 0.1 * f0
-    near = (f >= 0.5 * f0) & (f <= 2.0 * f0) & ~band
-
-    def one(r):
-        e = lfilter(d, c, r) * w
-        e = (e - jnp.sum(e) / jnp.sum(w)) * w
-        power = jnp.abs(jnp.fft.rfft(e, n=m)) ** 2
-        return jnp.sum(jnp.where(band, power, 0.0)) / jnp.sum(band) / jnp.nanmedian(jnp.where(near, power, jnp.nan))
-
-    return jax.vmap(one)(resid)
-
-
-def _prove(model: LoopModel, op, pv, n_est: int, before: dict, other=None):
-    """A candidate model's proof: its held-out figures, its held-out simulation and
-    k-step gains over `before`, and the input cross-correlation test of its
-    (AR(2)-whitened) estimation residual, with `other` (an effect found beside it,
-    e.g. an external oscillation, in PV units) removed first."""
-    after = _heldout(model, op, pv, n_est)
-    gain = _diff(after["fitness"], before["fitness"])
-    kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
-    return after, gain, kgain, _residual_cross_correlation(model, op, pv, n_est, other)
-
-
-def _residual_cross_correlation(model: LoopModel, op, pv, n_est: int, other=None) -> dict:
-    """The input cross-correlation test of `model`'s (AR(2)-whitened) estimation
-    residual, with `other` (in PV units) removed first."""
-    sim = np.asarray(_jit_scored(model, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
-    resid = pv - sim if other is None else pv - sim - other
-    return cross_correlation(op[:n_est], ar_whiten(resid[:n_est], 2)[0])
-
-
-def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: DiagnoseSettings, say):
-    """Stiction refitted jointly with the linear part, for a loop with no nominal model.
-
-    The grid candidate holds the nominal's poles, which a linear-valve fit to a
-    sticky loop gets wrong; here [`jaxstiction.estimate`][] fits the Kano valve with
-    a Box–Jenkins linear part (poles free) and, the same way, a linear valve and a
-    deadband (Kano with J = 0). The statistic is the gain in simulation fitness of
-    the Kano valve over the linear valve on the estimation data (points); its null
-    comes from `joint_bootstrap` records simulated from the fitted linear-valve model
-    plus noise from its noise model (recorded OP), each fitted the same way (fewer on
-    records longer than 3000 samples, at least 3).
-
-    When the stiction finding is not accepted (J not significantly above 0, or the
-    Kano valve not holding up on held-out data), the joint deadband fit is judged
-    the same way (its own statistic and bootstrap null, held-out gain and spread)
-    and returned beside it, to stand for the grid's deadband (whose candidate holds
-    the nominal's poles too). When that deadband is proven but J is significantly
-    above 0 (and the Kano valve is significant and beats its own linear valve held
-    out), the finding is stiction: the band proven held out, the slip on the
-    estimation data.
-
-    Returns `(stiction, deadband)` findings (`deadband` is `None` when stiction is
-    accepted), or `None` when the fit failed."""
-    st = dataclasses.replace(settings.joint, validate=float(settings.holdout))
-    def call(o, p):  # `estimate` is jitted: one compilation per record length and settings
-        return estimate(make_loop(o, p), st)
-
-    fit = call(op, pv)
-    if not bool(usable(fit.result)):
-        return None
-
-    def statistics(f):
-        # the gains in simulation fitness over the linear valve on the estimation
-        # data (Kano, deadband), every model scored the same way on the same samples
-        # (their Box-Jenkins criteria are not: a Kano fit skips the samples before
-        # its valve first moves), and the same gains held out
-        lin, lin_ho = f.fitness_linear_estimation, f.fitness_linear
-        return np.array([float(f.fitness_physical_estimation - lin), float(f.fitness_deadband_estimation - lin),
-                         float(f.fitness_physical - lin_ho), float(f.fitness_deadband - lin_ho)])
-
-    T = statistics(fit)
-    lin_sim = np.asarray(_jit_scored(fit.linear, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
-    # each replicate is a whole fit: fewer of them on long records (at least 3)
-    reps = min(settings.joint_bootstrap, max(3, round(settings.joint_bootstrap * 3000 / len(op))))
-    say(f"joint stiction fit: bootstrap of {reps} whole refits")
-    noise = _bootstrap_noise(fit.linear.noise.c, fit.linear.noise.d, pv - lin_sim, n_est,
-                             jr.fold_in(jr.key(settings.seed), 7919), reps, len(op))
-    Tb = np.asarray([statistics(fb) for fb in (call(op, lin_sim + v) for v in noise) if bool(usable(fb.result))])
-    Tb = Tb.reshape(-1, 4)
-
-    def judge(effect, i, model, params, extra, slips=True):
-        """A joint finding for the statistic in column `i` (its held-out gains in
-        column `i + 2`): significance against the bootstrap, then the proof. `None`
-        when fewer than 3 replicates gave both."""
-        rows = Tb[np.isfinite(Tb[:, i]) & np.isfinite(Tb[:, i + 2])]
-        if len(rows) < 3:
-            return None
-        p = min(1.0, families * _null_tail(T[i], rows[:, i]))
-        sig_f = p <= settings.alpha and T[i] > 0
-        label = "Kano valve" if effect == "stiction" else "deadband"
-        ev = {"statistic": round(float(T[i]), 3), "p_value": round(p, 4),
-              "bootstrap_median": round(float(np.median(rows[:, i])), 3), "significant": bool(sig_f), "joint": True,
-              "method": f"{label} and Box-Jenkins linear part refitted jointly; null from {len(rows)} bootstrap refits"}
-        if not sig_f:
-            return Finding(effect, params, ev, before, before, False, model)
-        after, gain, kgain, cc = _prove(model, op, pv, n_est, before)
-        spread = float(np.std(rows[:, i + 2]))
-        need = max(0.5, spread)
-        # the gain must come from the valve: held out, over the nominal and over the
-        # joint fit's own linear valve (the two differ in their linear parts), and
-        # the valve must not predict worse than the linear one (PAP5: a 0.0007 %
-        # deadband "gained" 1.06 points over the nominal, none over its linear
-        # valve, with a far larger prediction error)
-        own = float(T[i + 2])
-        ev.update(heldout_gain=round(gain, 3), heldout_gain_over_linear=round(own, 3),
-                  k_step_gain=round(float(kgain), 5), residual_cross_correlation_passes=cc["passes"],
-                  spread=round(spread, 3), gain_needed=round(need, 3), **extra)
-        ok = gain > need and own > need and extra["rank_score"] > 0 and slips
-        return Finding(effect, params, ev, before, after, bool(ok), model)
-
-    def lr(model, null):  # likelihood ratio of `model` against `null`, estimation data
-        return float(fit.n_estimation) * float(np.log(float(null.noise.variance) / float(model.noise.variance)))
-
-    # J above 0: against the deadband fit (Kano with J = 0, width searched), chi2(1)
-    # at 95 %, as for the grid candidates
-    lr_slip = lr(fit.physical, fit.deadband)
-    slips = lr_slip > 3.84
-    params = {"S": round(float(fit.S), 4), "J": round(float(fit.J), 4),
-              "interval": {"S": [round(float(x), 4) for x in np.asarray(fit.S_interval)],
-                           "J": [round(float(x), 4) for x in np.asarray(fit.J_interval)]}}
-    # ranked against the grid families by the likelihood ratio against the linear
-    # valve, as theirs are
-    stiction = judge("stiction", 0, fit.physical, params,
-                     {"rank_score": round(lr(fit.physical, fit.linear) - 4, 3), "slip_statistic": round(lr_slip, 3)},
-                     slips)
-    if stiction is None:
-        return None
-    if stiction.accepted:  # J significant and the Kano valve proven: no deadband beside it
-        return stiction, None
-    if not slips:
-        note = "J is not significantly above 0 (the Kano valve does not beat a deadband): deadband"
-        stiction = _revised(stiction, False, note=note)
-    # the band without the slip, judged on its own: J not significant, or a Kano
-    # valve that did not hold up on held-out data (its slip fitted to the estimation
-    # part only)
-    width = float(fit.deadband.chain[0].S)
-    deadband = judge("deadband", 1, fit.deadband, {"width": round(width, 4), "interval": {}},
-                     {"rank_score": round(lr(fit.deadband, fit.linear) - 2, 3)})
-    return _slip_on_proven_band(stiction, deadband, lr_slip)
-
-
-def _slip_on_proven_band(stiction: Finding, deadband: Finding | None, lr_slip: float):
-    """The joint fit's `(stiction, deadband)` findings once both are judged: when the
-    deadband is proven held out, the slip is significant on the estimation data
-    (likelihood ratio of the Kano valve over the deadband above chi2(1, 95 %) =
-    3.84), and the Kano valve is significant and beats its own linear valve held out,
-    the finding is stiction (accepted, the deadband marked as subsumed); otherwise
-    both are returned as they are.
-
-    A deadband is J = 0 (DESIGN §3), so naming one while J is significantly above 0
-    contradicts the evidence. The Kano valve's own held-out simulation can still lose
-    to the deadband's, and to the nominal's, when a slip falls at another time held
-    out: on CHEM10 the fitted S (1.885 % of OP) exceeds the OP swing of the held-out
-    part's last half-cycle, where the real valve slipped, and the simulation misses
-    that slip (held out 67.0 % against the deadband's 87.1 %; the slip's likelihood
-    ratio on the estimation data is 785)."""
-    ev = stiction.evidence
-    if not (deadband is not None and deadband.accepted and lr_slip > 3.84 and ev.get("significant")
-            and ev.get("heldout_gain_over_linear", -math.inf) > ev.get("gain_needed", math.inf)):
-        return stiction, deadband
-    note = (f"the band is proven on held-out data by its J = 0 member (deadband: "
-            f"{deadband.evidence['heldout_gain']:+.2f} points over the nominal) and J > 0 on the estimation "
-            f"data (likelihood ratio {lr_slip:.1f} > 3.84); the Kano valve's own held-out simulation gains "
-            f"{ev['heldout_gain']:+.2f} points over the nominal and {ev['heldout_gain_over_linear']:+.2f} over "
-            "its linear valve (one slip simulated at the wrong time held out costs a simulation much of its fitness)")
-    return (_revised(stiction, True, proof="band held out, slip on estimation data",
-                     band_heldout_gain=deadband.evidence["heldout_gain"], note=note),
-            _revised(deadband, False, note="subsumed by stiction: J is significantly above 0"))
-
-
-def _revised(finding: Finding, accepted: bool, **evidence) -> Finding:
-    """`finding` with its acceptance decided again and `evidence` added."""
-    return dataclasses.replace(finding, evidence={**finding.evidence, **evidence}, accepted=accepted)
 
 
 def _ranked(accepted: list[Finding]) -> list[Finding]:
