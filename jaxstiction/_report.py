@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._blocks import Kano
-from ._checks import check_loop
+from ._checks import check_loop, LoopDataError
 from ._criteria import simulate_scored
 from ._estimate import delay_note, LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
@@ -231,7 +231,13 @@ def checked(op, pv, name: str, settings: Settings) -> tuple[np.ndarray, np.ndarr
     op, pv = check_loop(op, pv, name=name, min_length=1, require_variation=False)
     n = op.shape[0]
     n_est = n - int(round(settings.validate * n))
-    check_loop(op[:n_est], pv[:n_est], name=name, min_length=min_length(settings))
+    need = int(min_length(settings))
+    if n_est < need and n_est < n:
+        hint = "; a validate fraction of 0 holds none out" if n >= need else ""
+        raise LoopDataError(
+            f"{name}: needs at least {need} estimation samples for the chosen orders and delays, got {n_est} "
+            f"({n} in the record, {n - n_est} held out for validation{hint})")
+    check_loop(op[:n_est], pv[:n_est], name=name, min_length=need)
     return op, pv
 
 

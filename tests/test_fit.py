@@ -39,7 +39,8 @@ def test_validate_fraction_is_checked():
 
 def test_too_short_after_holding_out_validation():
     op, pv = _loop(n=600)
-    with pytest.raises(ValueError, match="at least"):
+    message = r"at least \d+ estimation samples .*, got 300 \(600 in the record, 300 held out"
+    with pytest.raises(ValueError, match=message):
         js.fit(op, pv, validate=0.5)
 
 
