@@ -22,6 +22,7 @@ from ._blocks import Sinusoid
 from ._criteria import simulate_scored
 from ._filters import lfilter
 from ._locate import ar_whiten, cross_correlation
+from ._misc import json_number
 from ._models import LoopModel
 
 
@@ -102,11 +103,9 @@ def _heldout(model: LoopModel, op, pv, n_est: int) -> dict:
 
     def rms(e):
         with np.errstate(all="ignore"):
-            v = float(np.sqrt(np.mean(e**2)))
-        return round(v, 5) if math.isfinite(v) else None
+            return json_number(np.sqrt(np.mean(e**2)), 5)
 
-    fit_v = float(fit_h)
-    return {"fitness": round(fit_v, 3) if math.isfinite(fit_v) else None, "one_step_rms": rms(pv[h] - p1[h]),
+    return {"fitness": json_number(fit_h), "one_step_rms": rms(pv[h] - p1[h]),
             f"k{K_STEP}_step_rms": rms(pv[h] - pk[h])}
 
 

@@ -177,7 +177,7 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
     sset = settings.spline
     foe = np.asarray(fit.foe)
     cands = {
-        "foe": {RULES[r]: [None if not np.isfinite(v) else round(float(v), 6) for v in foe[r]] for r in range(2)},
+        "foe": {RULES[r]: [_r(v, 6) for v in foe[r]] for r in range(2)},
         "knot_counts": list(sset.knot_counts),
         "fitness": {RULES[r]: [_r(v) for v in np.asarray(fit.candidate_fitness)[r]] for r in range(2)},
         # the choice between the families (lower BIC wins; FOE for reference)
