@@ -260,30 +260,47 @@ def _max_delay(text: str) -> int:
     return n
 
 
+def _cache_folder(default: str = "xla") -> str | None:
+    """The persistent cache folder: `JAXSTICTION_CACHE` when set (`off`, `0`, `no` or
+    `false`: none), else `jaxstiction/<default>` in the user's cache folder; created
+    if missing (`None` when it cannot be)."""
+    import os
+
+    where = os.environ.get("JAXSTICTION_CACHE", "")
+    if where.lower() in ("off", "0", "no", "false"):
+        return None
+    if not where:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        where = os.path.join(base, "jaxstiction", default)
+    try:
+        os.makedirs(where, exist_ok=True)
+    except OSError:
+        return None
+    return where
+
+
+def _xla_cache(where: str):
+    """XLA's persistent compilation cache in folder `where`, for every program worth it."""
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
 def _compilation_cache():
     """Persistent XLA compilation cache in the user's cache folder, so a second run of
     the same shapes in a new process does not recompile. `JAXSTICTION_CACHE=off`
     turns it off; `JAXSTICTION_CACHE=DIR` puts it elsewhere."""
     import os
 
-    import jax
-
-    where = os.environ.get("JAXSTICTION_CACHE", "")
-    if where.lower() in ("off", "0", "no", "false"):
-        return
-    if not where:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        where = os.path.join(base, "jaxstiction", "xla")
-    try:
-        os.makedirs(where, exist_ok=True)
-    except OSError:
+    where = _cache_folder()
+    if where is None:
         return
     from ._programs import use_program_cache
 
     use_program_cache(os.path.join(where, "programs"))
-    jax.config.update("jax_compilation_cache_dir", where)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _xla_cache(where)
 
 
 # jaxlib releases on which `--xla_cpu_use_fusion_emitters=false` was measured (an

@@ -1,7 +1,7 @@
 import os
 import pathlib
 
-from jaxstiction._cli import _lean_compiler
+from jaxstiction._cli import _cache_folder, _lean_compiler, _xla_cache
 
 
 # The command line's compiler flag (XLA's older CPU fusion code generator: under half
@@ -21,15 +21,10 @@ import pytest  # noqa: E402
 # folder (XLA's cache is keyed by the compiled program itself, so nothing stale is
 # ever loaded). Set JAXSTICTION_CACHE to use another folder, or `off` to compile
 # everything every time.
-if "JAXSTICTION_CACHE" not in os.environ:
-    _base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    os.environ["JAXSTICTION_CACHE"] = os.path.join(_base, "jaxstiction", "test-xla")
-_cache = os.environ["JAXSTICTION_CACHE"]
-if _cache.lower() not in ("off", "0", "no", "false"):
-    os.makedirs(_cache, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", _cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+_cache = _cache_folder("test-xla")
+os.environ.setdefault("JAXSTICTION_CACHE", _cache or "off")
+if _cache is not None:
+    _xla_cache(_cache)
 
 # Identification needs float64; the library never sets it, the tests do.
 jax.config.update("jax_enable_x64", True)
