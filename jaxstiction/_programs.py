@@ -73,12 +73,15 @@ def simulations_of(fit: LoopFit, op, pv, weights, score):
     samples; a held-out part restarts from one estimated on its own opening samples
     (`simulate_scored` with `score`, as the fitness was computed)."""
     w_est, w_val = estimation_parts(weights, fit.n_estimation, fit.n_validation)
-    held_out = (fit.n_validation > 0) & (w_val > 0)
 
     def shown(m):
         whole = simulate_scored(m, op, pv, w_est, score)[0]
-        restart = simulate_scored(m, op, pv, w_val, score)[0]
-        return jnp.where(held_out, restart, whole)
+        # nothing held out: nothing to restart (and no second simulation to run)
+        return jax.lax.cond(
+            fit.n_validation > 0,
+            lambda: jnp.where(w_val > 0, simulate_scored(m, op, pv, w_val, score)[0], whole),
+            lambda: whole,
+        )
 
     return tuple(shown(m) for m in (fit.model, fit.paper))
 
