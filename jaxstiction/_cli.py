@@ -62,6 +62,8 @@ def _summary(r, head: str | None = None) -> str:
         (
             f"  model: spline valve, direction rule {r.direction_rule}, {r.num_knots} knots, "
             if r.model_kind == "spline"
+            else "  model: linear valve (no stiction model beat it), "
+            if r.model_kind == "linear"
             else "  model: physical (Kano) valve, "
         )
         + f"linear order {r.order}, delay {r.delay}",

@@ -12,7 +12,7 @@ import numpy as np
 from ._blocks import Kano
 from ._checks import check_loop, LoopDataError
 from ._criteria import simulate_scored
-from ._estimate import delay_note, LoopFit, min_length, RESULTS, Settings
+from ._estimate import delay_note, KINDS, LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
 from ._loop import make_loop
 from ._misc import json_number as _r
@@ -21,7 +21,6 @@ from ._spline import scale_input, valve_curves
 
 
 RULES = ("literal", "robust")
-KINDS = ("spline", "physical")
 
 
 def crossing(u, f, level):
@@ -137,11 +136,13 @@ def _valve_picture(fit: LoopFit, settings: Settings):
     ug = np.linspace(lo, hi, 400)
     b = np.asarray(fit.model.process.b)
     a = np.asarray(fit.model.process.a)
-    if int(fit.kind) == 1:
-        # Kano's own loop: a triangular OP sweep hi -> lo -> hi -> lo (the first leg
-        # settles the valve state); ascent and descent legs read off.
+    if int(fit.kind) >= 1:
+        # Kano's own loop (the linear valve: S = J = 0): a triangular OP sweep
+        # hi -> lo -> hi -> lo (the first leg settles the valve state); ascent and
+        # descent legs read off.
         sweep = np.concatenate([ug[::-1], ug, ug[::-1]])
-        xk = np.asarray(_kano_path(fit.S, fit.J, jnp.asarray(sweep)))
+        S, J = (fit.S, fit.J) if int(fit.kind) == 1 else (0.0, 0.0)
+        xk = np.asarray(_kano_path(S, J, jnp.asarray(sweep)))
         n_u = ug.shape[0]
         up, down = xk[n_u : 2 * n_u], xk[2 * n_u :][::-1]
         # x_hat = 2 (valve - lo) / (hi - lo) - 1
@@ -182,7 +183,7 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
         "fitness": {RULES[r]: [_r(v) for v in np.asarray(fit.candidate_fitness)[r]] for r in range(2)},
         # the choice between the families (lower BIC wins; FOE for reference)
         "families": {k: {"foe": _r(getattr(fit, f"foe_{k}"), 6), "bic": _r(getattr(fit, f"bic_{k}"), 3)}
-                     for k in ("spline", "physical")},
+                     for k in ("spline", "physical", "linear")},
     }
     return FitReport(
         name=name,

@@ -26,7 +26,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._estimate import delay_note, estimate, RESULTS, Settings
+from ._estimate import delay_note, estimate, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
 from ._misc import json_number as _r
 from ._physical import PhysicalSettings
@@ -134,7 +134,9 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "stiction_detected": bool(ver.stiction_detected),
         "cause": cause if ok else None,
         "slip_identified": bool(ver.slip_identified) if ok else None,
-        "band_percent": _r(fit.band_percent),
+        # the Kano fit's band, which the verdict judges, whichever family `estimate`
+        # chose (the linear valve's band is 0)
+        "band_percent": _r(fit.S if math.isfinite(float(fit.S)) else fit.band_percent),
         "fitness": _r(fit.fitness),
         "S": _r(fit.S),
         "J": _r(fit.J),
@@ -150,7 +152,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "fitness_deadband": _r(fit.fitness_deadband),
         "oscillation": _r(ver.oscillation),
         "period_samples": _r(ver.period, 1),
-        "model": ("spline", "physical")[int(fit.kind)],
+        "model": KINDS[int(fit.kind)],
         "delay": int(fit.delay),
     }
     if pictures and ok:

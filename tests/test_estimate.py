@@ -217,6 +217,20 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
         assert code(got.result) == code(no_spline.result)
 
 
+def test_a_linear_valve_is_chosen_when_no_stiction_model_beats_it():
+    """A loop with a linear valve: the Kano fit nests it (S = J = 0) but costs two more
+    parameters, so BIC chooses the linear valve; the chosen model's band is 0 and its
+    scores are the linear valve's. (The same length and settings as `no_spline`: no
+    new compilation.)"""
+    rec = js.simulate_loop(nominal_model(), paper_experiment(), jr.PRNGKey(5), 700)
+    f = js.estimate(rec.loop, NO_SPLINE)
+    assert code(f.result) == code(js.RESULTS.successful)
+    assert int(f.kind) == 2 and float(f.bic_linear) < float(f.bic_physical)
+    assert float(f.band_percent) == 0.0
+    assert float(f.fitness) == pytest.approx(float(f.fitness_linear))
+    assert float(f.fitness_estimation) == pytest.approx(float(f.fitness_linear_estimation))
+
+
 def test_without_the_spline_family(no_spline, singles):
     """`use_spline=False` (the screen's profile) leaves the Kano model and the
     verdict's nulls exactly as the full estimator fits them; the spline fields are
