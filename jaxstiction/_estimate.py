@@ -440,7 +440,11 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     bics = jnp.stack([bic_s, bic_ph, bic_lin])
     kind = jnp.argmin(jnp.where(jnp.isnan(bics), jnp.inf, bics))
     physical, linear = kind == 1, kind == 2
-    model = jax.tree.map(lambda p, s, l_: jnp.where(linear, l_, jnp.where(physical, p, s)), m_phys, m_spline, m_lin)
+
+    def chosen(spline_value, physical_value, linear_value):
+        return jnp.where(linear, linear_value, jnp.where(physical, physical_value, spline_value))
+
+    model = jax.tree.map(chosen, m_spline, m_phys, m_lin)
 
     # Every score (model x scored part) the settings call for, one after the other in
     # one `lax.map`: one trace, and the memory of one simulation at a time. The
@@ -463,11 +467,11 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     fit_phys, fit_phys_est = scores.get(("phys", "val"), nan), scores.get(("phys", "est"), nan)
     fit_paper = scores.get(("paper", "val"), nan)
     fit_spline, fit_spline_est = scores.get(("spline", "val"), nan), scores.get(("spline", "est"), nan)
-    fit_val = jnp.where(linear, fit_lin, jnp.where(physical, fit_phys, fit_spline))
-    fit_est = jnp.where(linear, fit_lin_est, jnp.where(physical, fit_phys_est, fit_spline_est))
+    fit_val = chosen(fit_spline, fit_phys, fit_lin)
+    fit_est = chosen(fit_spline_est, fit_phys_est, fit_lin_est)
 
     band_spline = spline_band(pick.model.beta, knots[ki], kmasks[ki], lo, hi)
-    band = jnp.where(linear, 0.0, jnp.where(physical, S, band_spline))
+    band = chosen(band_spline, S, 0.0)
 
     # ----------------------------------------------------------------- result
     # The output-error polish is a budgeted refinement that keeps the better of its
@@ -510,8 +514,8 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         J_interval=J_int,
         direction_rule=jnp.where(kind > 0, 0, ri).astype(i32),
         num_knots=jnp.where(kind > 0, 0, counts[ki]).astype(i32),
-        order=jnp.where(linear, pset.order, jnp.where(physical, order_ph, order_s)).astype(i32),
-        delay=jnp.where(linear, bl + 1, jnp.where(physical, delay_ph, pick.model.linear.delay)).astype(i32),
+        order=chosen(order_s, order_ph, pset.order).astype(i32),
+        delay=chosen(pick.model.linear.delay, delay_ph, bl + 1).astype(i32),
         foe=foe_grid,
         candidate_fitness=cand.fitness,
         foe_spline=foe_s,
