@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._estimate import _estimate_traced
+from jaxstiction._estimate import _estimate_traced, choose_family
 from jaxstiction._scenarios import nominal_model, paper_experiment
 
 
@@ -229,6 +229,24 @@ def test_a_linear_valve_is_chosen_when_no_stiction_model_beats_it():
     assert float(f.band_percent) == 0.0
     assert float(f.fitness) == pytest.approx(float(f.fitness_linear))
     assert float(f.fitness_estimation) == pytest.approx(float(f.fitness_linear_estimation))
+
+
+def test_family_choice_needs_a_simulation_as_good_as_the_linear_valve():
+    """The least BIC wins, but a stiction family whose scored simulation of the
+    estimation part is worse than the linear valve's (which it nests) is not eligible."""
+    choose = lambda b, f: int(choose_family(jnp.asarray(b), jnp.asarray(f)))  # noqa: E731
+    assert choose([10.0, 5.0, 20.0], [80.0, 75.0, 70.0]) == 1
+    assert choose([10.0, 5.0, 20.0], [80.0, 60.0, 70.0]) == 0  # the Kano model simulates worse
+    assert choose([10.0, 5.0, 20.0], [65.0, 60.0, 70.0]) == 2
+    assert choose([np.nan, 5.0, 20.0], [np.nan, 75.0, 70.0]) == 1
+    assert choose([10.0, 5.0, 20.0], [np.nan, np.nan, 70.0]) == 2  # scores that failed
+    assert choose([10.0, 5.0, 20.0], [80.0, 60.0, np.nan]) == 1  # no linear score to compare with
+
+
+def test_chosen_family_simulates_at_least_as_well_as_the_linear_valve(singles, no_spline):
+    for f in (*singles, no_spline):
+        if int(f.kind) != 2:
+            assert float(f.fitness_estimation) >= float(f.fitness_linear_estimation)
 
 
 def test_without_the_spline_family(no_spline, singles):
