@@ -30,6 +30,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+from paper_sim_seeds import _CELL_GRID, _CELL_HALF, _kano_paths  # noqa: E402
 
 from jaxstiction import Kano  # noqa: E402
 from jaxstiction._criteria import simulate_scored  # noqa: E402
@@ -38,22 +39,16 @@ from jaxstiction._report import fit  # noqa: E402
 from jaxstiction._scenarios import make_scenario  # noqa: E402
 
 
-STEP, HALF, BURN = 0.0005, 0.3, 50
+BURN = 50  # samples ignored at the start, as paper_sim_seeds.py's cell
 FRACTIONS = (0.0, 0.1, 0.25, 0.4, 0.5, 0.75, 1.0)
-GRID = np.arange(-HALF, HALF + STEP / 2, STEP)
-
-
-@jax.jit
-def _paths(op, S, J):
-    # one Kano valve path per (S, J), each from rest at op[0]
-    return jax.vmap(lambda s, j: Kano(s, j)(op, Kano(s, j).init(op[0])))(S, J)
+GRID = np.arange(-_CELL_HALF, _CELL_HALF + _CELL_GRID / 2, _CELL_GRID)
 
 
 def cell(op, S, J, reference):
     """`(lo, hi)`: offsets from S of the contiguous run of grid points around S whose
     valve path moves at exactly the samples `reference` moves at."""
     moves = np.diff(np.asarray(reference)) != 0
-    paths = np.asarray(_paths(op, jnp.asarray(S + GRID), jnp.full(GRID.shape, J)))
+    paths = np.asarray(_kano_paths(op, jnp.asarray(S + GRID), jnp.full(GRID.shape, J)))
     same = np.all((np.diff(paths, axis=1) != 0)[:, BURN:] == moves[None, BURN:], axis=1)
     i = lo = hi = int(np.argmin(np.abs(GRID)))
     if not same[i]:
@@ -83,7 +78,7 @@ def main():
         k = model.chain[0]
         S, J = float(k.S), float(k.J)
         if reference is None:
-            reference = _paths(est.op, jnp.asarray([S]), jnp.asarray([J]))[0]
+            reference = _kano_paths(est.op, jnp.asarray([S]), jnp.asarray([J]))[0]
         lo, hi = cell(est.op, S, J, reference)
         whole = jnp.ones_like(val.op)
         scores = []

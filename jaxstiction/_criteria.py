@@ -26,6 +26,13 @@ def bic(loss, count, dof):
     return count * jnp.log(loss) + dof * jnp.log(count)
 
 
+def family_criteria(loss, count, dof):
+    """`(foe, bic)` of a model family's loss, both +inf where the fit failed (a
+    non-finite loss or FOE), so that family is never chosen."""
+    f = jnp.where(jnp.isfinite(loss), foe(loss, count, dof), jnp.inf)
+    return f, jnp.where(jnp.isfinite(f), bic(loss, count, dof), jnp.inf)
+
+
 class ScoreSettings(eqx.Module):
     """How a simulation is scored: the initial state is estimated from the opening
     `max(init_min, init_fraction × length)` samples of the scored record, over

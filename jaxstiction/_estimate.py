@@ -19,7 +19,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from ._blocks import Kano
-from ._criteria import bic, foe, score, ScoreSettings, simulate_scored
+from ._criteria import family_criteria, foe, score, ScoreSettings, simulate_scored
 from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinModel, SplineSettings
 from ._loop import Loop
 from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
@@ -323,8 +323,8 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     knots, kmasks, counts = candidate_knots(sset, dtype)
     order_s = jnp.sum(pick.model.linear.mask).astype(jnp.int32)
     dof_s = 2 * (counts[ki] + 2) + 2 * order_s - 1
-    foe_s = jnp.where(jnp.isfinite(foe_grid[ri, ki]), foe(pick.v_oe, count, dof_s), jnp.inf)
-    bic_s = jnp.where(jnp.isfinite(foe_s), bic(pick.v_oe, count, dof_s), jnp.inf)
+    # a run-away candidate has an infinite FOE on the grid
+    foe_s, bic_s = family_criteria(jnp.where(jnp.isfinite(foe_grid[ri, ki]), pick.v_oe, jnp.inf), count, dof_s)
 
     # the paper's literal method: literal rule, its own FOE choice, no polish
     dof_p = 2 * sset.arx_order + counts
@@ -368,8 +368,7 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         m_phys = _loop_model(Kano(phys.S, phys.J), SplineValve.linear(lo, hi, M, dtype), pb, pa, phys.model.offset,
                              c_n, d_n, phys.v_oe, mu, sd, nb, na)
         dof_ph = 2 + 2 * pset.order + 1
-        foe_ph = jnp.where(jnp.isfinite(phys.v_oe), foe(phys.v_oe, count, dof_ph), jnp.inf)
-        bic_ph = jnp.where(jnp.isfinite(foe_ph), bic(phys.v_oe, count, dof_ph), jnp.inf)
+        foe_ph, bic_ph = family_criteria(phys.v_oe, count, dof_ph)
         S, J, S_int, J_int = phys.S, phys.J, phys.S_interval, phys.J_interval
         # the Box-Jenkins fits are budgeted refinements of grid points: only a
         # non-finite criterion is a failure
@@ -420,8 +419,7 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     bl = jnp.argmin(v_null[:L])
     m_lin = as_model(jax.tree.map(lambda t: t[bl], null_fits), v_null[bl], none)
     dof_lin = 2 * pset.order + 1
-    foe_lin = jnp.where(jnp.isfinite(v_null[bl]), foe(v_null[bl], count, dof_lin), jnp.inf)
-    bic_lin = jnp.where(jnp.isfinite(foe_lin), bic(v_null[bl], count, dof_lin), jnp.inf)
+    foe_lin, bic_lin = family_criteria(v_null[bl], count, dof_lin)
     if settings.use_physical:
         bd = jnp.argmin(v_null[L:])
         m_db = as_model(jax.tree.map(lambda t: t[L + bd], null_fits), v_null[L + bd],
