@@ -5,6 +5,7 @@
     python benchmarks/calibrate_verdict.py --json
     python benchmarks/calibrate_verdict.py --plants diverse --seeds 0-23   # other processes
     python benchmarks/calibrate_verdict.py --seeds 0-5 --oversample 3      # faster sampling
+    python benchmarks/calibrate_verdict.py --plants diverse --seeds 0-47 --processes integrating --full-search
 
 Kinds (1500 samples each, the paper's process and noise colouring, 5 % noise power;
 half of the loops follow a GBN setpoint (±20, switching with probability 0.05), half
@@ -60,8 +61,9 @@ from jaxstiction import (  # noqa: E402
     simulate_loop,
     Sinusoid,
 )
+from jaxstiction._cli import screen_settings  # noqa: E402
 from jaxstiction._scenarios import nominal_model  # noqa: E402
-from jaxstiction._screen import screen_loops, ScreenSettings, Settings  # noqa: E402
+from jaxstiction._screen import screen_loops  # noqa: E402
 
 
 KINDS = ("stiction", "none", "tight", "external", "deadband", "small_slip")
@@ -217,19 +219,20 @@ def main():
     p.add_argument("--oversample", type=int, default=1, metavar="R",
                    help="interpolate every record linearly onto R times as many samples (a crude stand-in "
                         "for a loop sampled R times faster)")
+    p.add_argument("--processes", default=",".join(PLANT_TYPES), metavar="LIST",
+                   help="with --plants diverse: only the loops whose drawn process is one of these "
+                        f"({', '.join(PLANT_TYPES)})")
     p.add_argument("--max-delay", type=int, default=None, metavar="N",
                    help="try process dead times of 1..N samples (Settings.with_max_delay; default 3)")
     args = p.parse_args()
-    settings = ScreenSettings()
-    if args.full_search:
-        settings = ScreenSettings(estimate=Settings(use_spline=False))
-    if args.max_delay is not None:
-        settings = ScreenSettings(estimate=settings.estimate.with_max_delay(args.max_delay))
+    settings = screen_settings(args)  # as `jaxstiction screen [--full-search] [--max-delay N]`
     kinds = args.kinds.split(",")
     loops, meta = {}, {}
     for kind in kinds:
         for s in args.seeds:
             loop, truth, setpoint = (make if args.plants == "paper" else make_diverse)(kind, s)
+            if args.plants == "diverse" and truth["plant"] not in args.processes.split(","):
+                continue
             if args.oversample > 1:
                 loop = oversampled(loop, args.oversample)
             name = f"{kind}-{s}"
@@ -279,7 +282,10 @@ def main():
     if args.plants == "diverse":
         parts = []
         for pt in PLANT_TYPES:
-            hit, pos_pt, fa_pt, neg_pt = confusion([r for r in rows if r["truth"]["plant"] == pt])
+            rows_pt = [r for r in rows if r["truth"]["plant"] == pt]
+            if not rows_pt:
+                continue
+            hit, pos_pt, fa_pt, neg_pt = confusion(rows_pt)
             parts.append(f"{pt} {hit}/{pos_pt} found, {fa_pt}/{neg_pt} false alarms")
         print("per process: " + "; ".join(parts))
 

@@ -66,6 +66,13 @@ SCREEN_ESTIMATE = Settings(
                               init_count=3, final=3, oe_steps=15, interval_span=0.0),
 )
 
+# `jaxstiction screen --full-search`: the full estimator's Kano search (its order-8
+# grid criterion, finer refinement, three polish starts, 40-step Box-Jenkins fits),
+# still without the spline family; ~15 times the light profile's cost per loop. It
+# pays on integrating (level) loops, where the light search often misses the band
+# (README, *Verdict calibration*).
+FULL_SEARCH_ESTIMATE = Settings(use_spline=False)
+
 
 class ScreenSettings(eqx.Module):
     """Settings of [`jaxstiction.screen`][].

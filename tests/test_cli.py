@@ -142,3 +142,21 @@ def test_lean_compiler_flag(monkeypatch):
     monkeypatch.setattr(_cli, "_LEAN_COMPILER_VERIFIED", ("0.0.",))
     _cli._lean_compiler()
     assert os.environ["XLA_FLAGS"] == ""
+
+
+def test_screen_search_options_choose_the_estimator_profile():
+    """`screen` fits with the light Kano search by default, the full estimator's with
+    `--full-search` (both without the spline family), and `--max-delay` applies to
+    either."""
+    from jaxstiction import Settings
+    from jaxstiction._cli import build_parser, screen_settings
+    from jaxstiction._screen import SCREEN_ESTIMATE
+
+    def settings(*argv):
+        return screen_settings(build_parser().parse_args(["screen", "x.csv", *argv])).estimate
+
+    assert settings() == SCREEN_ESTIMATE
+    full = settings("--full-search")
+    assert full == Settings(use_spline=False) and full.physical.arx_order > SCREEN_ESTIMATE.physical.arx_order
+    assert settings("--full-search", "--max-delay", "6") == Settings(use_spline=False).with_max_delay(6)
+    assert settings("--max-delay", "6") == SCREEN_ESTIMATE.with_max_delay(6)
