@@ -226,12 +226,15 @@ def main():
                    help="try process dead times of 1..N samples (Settings.with_max_delay; default 3)")
     args = p.parse_args()
     settings = screen_settings(args)  # as `jaxstiction screen [--full-search] [--max-delay N]`
+    processes = args.processes.split(",")
+    if unknown := set(processes) - set(PLANT_TYPES):
+        p.error(f"unknown process(es) {', '.join(sorted(unknown))}; choose from {', '.join(PLANT_TYPES)}")
     kinds = args.kinds.split(",")
     loops, meta = {}, {}
     for kind in kinds:
         for s in args.seeds:
             loop, truth, setpoint = (make if args.plants == "paper" else make_diverse)(kind, s)
-            if args.plants == "diverse" and truth["plant"] not in args.processes.split(","):
+            if args.plants == "diverse" and truth["plant"] not in processes:
                 continue
             if args.oversample > 1:
                 loop = oversampled(loop, args.oversample)
