@@ -233,7 +233,9 @@ def test_a_linear_valve_is_chosen_when_no_stiction_model_beats_it():
 
 def test_family_choice_needs_a_simulation_as_good_as_the_linear_valve():
     """The least BIC wins, but a stiction family whose scored simulation of the
-    estimation part is worse than the linear valve's (which it nests) is not eligible."""
+    estimation part is worse than the linear valve's (which it nests) is not eligible,
+    nor is a linear valve that simulates worse than the data's mean when a stiction
+    family does not."""
     choose = lambda b, f: int(choose_family(jnp.asarray(b), jnp.asarray(f)))  # noqa: E731
     assert choose([10.0, 5.0, 20.0], [80.0, 75.0, 70.0]) == 1
     assert choose([10.0, 5.0, 20.0], [80.0, 60.0, 70.0]) == 0  # the Kano model simulates worse
@@ -241,6 +243,12 @@ def test_family_choice_needs_a_simulation_as_good_as_the_linear_valve():
     assert choose([np.nan, 5.0, 20.0], [np.nan, 75.0, 70.0]) == 1
     assert choose([10.0, 5.0, 20.0], [np.nan, np.nan, 70.0]) == 2  # scores that failed
     assert choose([10.0, 5.0, 20.0], [80.0, 60.0, np.nan]) == 1  # no linear score to compare with
+    # a linear valve whose simulation is further from the data than their mean gives
+    # way to a stiction family that scores at least 0, whatever the BIC
+    assert choose([30.0, 25.0, 20.0], [10.0, 40.0, -5.0]) == 1
+    assert choose([30.0, 45.0, 20.0], [10.0, 40.0, -5.0]) == 0
+    assert choose([30.0, 25.0, 20.0], [-10.0, -1.0, -5.0]) == 2  # no family sound: BIC decides
+    assert choose([np.inf, np.inf, 20.0], [10.0, 40.0, -5.0]) == 2  # the sound ones failed
 
 
 def test_chosen_family_simulates_at_least_as_well_as_the_linear_valve(singles, no_spline):
