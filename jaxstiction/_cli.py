@@ -76,8 +76,7 @@ def _summary(r, head: str | None = None) -> str:
             f"J = {r.J:.2f} [{r.J_interval[0]:.2f}, {r.J_interval[1]:.2f}] % "
             f"(physical-model fitness {r.fitness_physical:.2f} %)"
         )
-    if r.delay_note:
-        lines.append(f"  note: {r.delay_note}")
+    lines += [f"  note: {n}" for n in r.notes]
     lines.append(f"  converged: {r.converged} (relaxation: {r.relax_steps} sweeps)")
     return "\n".join(lines)
 
@@ -124,8 +123,9 @@ def cmd_fit(args):
     settings = None if args.max_delay is None else Settings().with_max_delay(args.max_delay)
     r = fit(op, pv, ts=ts, validate=args.validate, name=name, settings=settings)
     _log(f"fit: done in {time.time() - t0:.1f} s")
-    if r.delay_note and args.json:
-        _log(f"fit: note: {r.delay_note}")
+    if args.json:
+        for n in r.notes:
+            _log(f"fit: note: {n}")
     _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
     _emit(args, r.to_json(), _summary(r))
     return 0

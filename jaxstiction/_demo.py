@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._criteria import simulate_scored
+from ._estimate import held_out_note
 from ._filters import fitness
 from ._report import fit, FitReport
 from ._scenarios import make_scenario
@@ -60,5 +61,7 @@ def paper_sim_case(seed: int = 0, settings=None) -> tuple[dict, FitReport, np.nd
     vr = dataclasses.replace(
         r, op=np.asarray(val.op), pv=pv, pv_sim=sim, pv_sim_paper=sim_paper, n_estimation=0,
         n_validation=pv.shape[0], fitness=payload["fitness_validation"], fitness_paper=payload["fitness_paper_method"],
+        notes=tuple(n for n in (*r.notes, held_out_note(payload["fitness_validation"], r.fitness_estimation,
+                                                        pv.shape[0])) if n),
     )
     return payload, vr, clean

@@ -91,6 +91,17 @@ def delay_note(delay, kind, settings: Settings) -> str:
             "(--max-delay, Settings.with_max_delay)")
 
 
+def held_out_note(fitness, fitness_estimation, n_validation) -> str:
+    """A note when the chosen model simulates the held-out part worse than the data's
+    mean (a negative fitness) although it does not on the estimation part: it does
+    not carry to new data. Else ""."""
+    f, f_est = float(fitness), float(fitness_estimation)
+    if int(n_validation) == 0 or not (f < 0.0 <= f_est):
+        return ""
+    return (f"held out, the chosen model simulates worse than the data's mean ({f:.1f} % against "
+            f"{f_est:.1f} % on the estimation part): it does not carry to new data")
+
+
 def min_length(settings: Settings) -> int:
     """Fewest estimation samples the chosen orders and delays can be fitted from."""
     s = settings.spline

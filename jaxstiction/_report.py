@@ -12,7 +12,7 @@ import numpy as np
 from ._blocks import Kano
 from ._checks import check_loop, LoopDataError
 from ._criteria import simulate_scored
-from ._estimate import delay_note, KINDS, LoopFit, min_length, RESULTS, Settings
+from ._estimate import delay_note, held_out_note, KINDS, LoopFit, min_length, RESULTS, Settings
 from ._filters import step_response
 from ._loop import make_loop
 from ._misc import json_number as _r
@@ -55,7 +55,7 @@ class FitReport:
     num_knots: int
     order: int
     delay: int
-    delay_note: str
+    notes: tuple
     arx_order: int
     band_percent: float
     S: float | None
@@ -115,6 +115,7 @@ class FitReport:
             "stiction": stiction,
             "converged": bool(self.converged),
             "status": self.status,
+            "note": "; ".join(self.notes),
             "samples": {"estimation": self.n_estimation, "validation": self.n_validation},
             "Ts": self.ts,
         }
@@ -201,7 +202,8 @@ def report(fit: LoopFit, op, pv, *, name: str = "loop", ts: float = 1.0, setting
         num_knots=int(fit.num_knots),
         order=int(fit.order),
         delay=int(fit.delay),
-        delay_note=delay_note(fit.delay, fit.kind, settings),
+        notes=tuple(n for n in (delay_note(fit.delay, fit.kind, settings),
+                                held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation)) if n),
         arx_order=sset.arx_order,
         band_percent=float(fit.band_percent),
         S=float(fit.S) if physical else None,

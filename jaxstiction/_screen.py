@@ -26,7 +26,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._estimate import delay_note, estimate, KINDS, RESULTS, Settings
+from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
 from ._misc import json_number as _r
 from ._physical import PhysicalSettings
@@ -129,7 +129,8 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
     converged = bool(fit.result == RESULTS.successful)
     ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
     cause = CAUSES[int(ver.cause)]
-    notes = [RESULTS[fit.result] if not converged else "", delay_note(fit.delay, fit.kind, settings) if ok else ""]
+    notes = [RESULTS[fit.result] if not converged else "", delay_note(fit.delay, fit.kind, settings) if ok else "",
+             held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation) if ok else ""]
     rec = {
         "name": name,
         "file": file,

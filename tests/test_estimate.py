@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._estimate import _estimate_traced, choose_family
+from jaxstiction._estimate import _estimate_traced, choose_family, held_out_note
 from jaxstiction._scenarios import nominal_model, paper_experiment
 
 
@@ -163,6 +163,16 @@ def test_predict_scored(loops, singles):
     assert float(js.predict_scored(f.model, lp.op, lp.pv, w, 1)) > sim
 
 
+def test_held_out_note_flags_a_model_that_does_not_carry_to_new_data():
+    """A note only when the held-out simulation is worse than the data's mean while
+    the estimation part's is not (PAP7's spline model: -399 % against 8.1 %)."""
+    note = held_out_note(-399.3, 8.1, 4700)
+    assert "-399.3 %" in note and "8.1 %" in note
+    assert held_out_note(-399.3, 8.1, 0) == ""  # nothing held out: the score is the estimation one
+    assert held_out_note(-5.0, -20.0, 100) == ""  # no worse than on the data it was fitted on
+    assert held_out_note(40.0, 80.0, 100) == "" and held_out_note(np.nan, 80.0, 100) == ""
+
+
 def test_host_fit_reports_and_rejects_bad_input(loops):
     lp = loops[0]
     r = js.fit(np.asarray(lp.op), np.asarray(lp.pv), validate=0.25, settings=SMALL, name="syn")
@@ -173,6 +183,7 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
     fam = r.candidates["families"]
     assert fam["physical"]["bic"] is not None and fam["physical"]["foe"] > 0
     assert fam["spline"]["bic"] is None or fam["physical"]["bic"] < fam["spline"]["bic"]
+    assert d["note"] == "; ".join(r.notes)
     op = np.asarray(lp.op).copy()
     op[5] = np.nan
     with pytest.raises(ValueError, match="NaN"):
