@@ -38,7 +38,9 @@ def crossing(u, f, level):
 class FitReport:
     """A [`jaxstiction.LoopFit`][] read out for people: NumPy arrays and floats in
     engineering units, the curves the pictures draw, and `to_json()` (the `fit` JSON
-    object). `fit` is the underlying `LoopFit` (use it for `predict`)."""
+    object). `fit` is the underlying `LoopFit` (use it for `predict`). `notes`: what a
+    reader should know before trusting the model (a fitted delay that is the longest
+    tried; a model that simulates the held-out part worse than the data's mean)."""
 
     name: str
     ts: float
@@ -55,7 +57,7 @@ class FitReport:
     num_knots: int
     order: int
     delay: int
-    notes: tuple
+    notes: tuple[str, ...]
     arx_order: int
     band_percent: float
     S: float | None
