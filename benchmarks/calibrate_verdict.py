@@ -251,8 +251,8 @@ def main():
                                                    "evidence_estimation", "evidence_prediction",
                                                    "evidence_prediction_estimation", "slip_evidence", "slip_identified",
                                                    "slip_evidence_estimation", "band_fraction", "S", "J",
-                                                   "oscillation", "period_samples", "fitness", "fitness_kano",
-                                                   "fitness_linear", "fitness_deadband")}})
+                                                   "oscillation", "oscillation_kano", "period_samples", "fitness",
+                                                   "fitness_kano", "fitness_linear", "fitness_deadband")}})
     rows.sort(key=lambda r: (kinds.index(r["kind"]), r["seed"]))
     tp, pos, fa, neg = confusion(rows)
     tn = neg - fa

@@ -130,7 +130,10 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
     ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
     cause = CAUSES[int(ver.cause)]
     notes = [RESULTS[fit.result] if not converged else "", delay_note(fit.delay, fit.kind, settings) if ok else "",
-             held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation) if ok else ""]
+             held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation) if ok else "",
+             (f"the Kano valve leaves the linear fit's oscillation (period {float(ver.period):.0f} samples) in "
+              "its residual: a disturbance from elsewhere, not the valve's cycle") if ok and bool(ver.line_persists)
+             else ""]
     rec = {
         "name": name,
         "file": file,
@@ -160,6 +163,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "fitness_deadband": _r(fit.fitness_deadband),
         "oscillation": _r(ver.oscillation),
         "period_samples": _r(ver.period, 1),
+        "oscillation_kano": _r(ver.oscillation_kano),
         "model": KINDS[int(fit.kind)],
         "delay": int(fit.delay),
     }

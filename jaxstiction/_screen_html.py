@@ -10,7 +10,7 @@ from pathlib import Path
 
 COLUMNS = ("rank", "name", "status", "stiction_detected", "cause", "slip_identified", "band_percent", "S", "J",
            "evidence", "evidence_estimation", "evidence_prediction", "evidence_prediction_estimation", "fitness",
-           "fitness_kano", "fitness_linear", "oscillation",
+           "fitness_kano", "fitness_linear", "oscillation", "oscillation_kano",
            "period_samples", "model", "samples", "Ts", "file")
 
 

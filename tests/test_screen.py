@@ -159,6 +159,25 @@ def test_verdict_rule(fleet, kano, deadband, sticky, slip):
     assert js.CAUSES[int(v.cause)] in (("stiction",) if sticky else ("none", "external_oscillation"))
 
 
+def test_verdict_oscillation_the_kano_valve_leaves_is_not_its_cycle(fleet):
+    """A Kano valve that wins on the scores is not called sticky when its residual
+    keeps the linear valve's narrow line (here the two models are made one, so the
+    lines coincide; `oscillation` sets the share a line needs): the cause is then
+    the external oscillation."""
+    import equinox as eqx
+    _, good, _ = fleet
+    f = _with_scores(js.estimate(good[1], SMALL), 80.0, 75.0, 0.5)
+    same = eqx.tree_at(lambda m: m.physical, f, f.linear)
+    off = js.VerdictSettings(prediction_band=2.0, oscillation=0.0)
+    v = js.verdict(same, good[1], off)
+    assert bool(v.line_persists) and not bool(v.stiction_detected)
+    assert js.CAUSES[int(v.cause)] == "external_oscillation"
+    assert float(v.oscillation_kano) == pytest.approx(float(v.oscillation))
+    # a line under the threshold in either residual does not clear the valve
+    v = js.verdict(same, good[1], js.VerdictSettings(prediction_band=2.0, oscillation=float(v.oscillation) + 1e-6))
+    assert not bool(v.line_persists) and bool(v.stiction_detected)
+
+
 def _with_scores(f, kano, deadband, band):
     import equinox as eqx
     names = ("fitness_physical", "fitness_physical_estimation", "fitness_linear", "fitness_linear_estimation",
