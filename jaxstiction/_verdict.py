@@ -41,9 +41,9 @@ on seeds 24-47 (two of five false alarms cleared, none lost), 48-71 (five of ten
 cleared, one band of 45 lost) and on the paper's process at seeds 0-47 (its one
 false alarm cleared, none of 128 bands lost); it changes no ISDB verdict. A sticky
 valve beside a strong external oscillation is the price: it is named the
-oscillation. (`paper_sim`-process loops with Kano S 4, J 1 and a sinusoid of
-amplitude 4 and period 30, the P10 scenario, stay sticky: their linear residual
-holds the line at 6-10 % of its power.)
+oscillation. (The P10 scenario, Kano S 4, J 1 beside a sinusoid of amplitude 4 and
+period 30, keeps its screen verdicts at seeds 0-5: its linear residual holds the
+line at 6-10 % of its power.)
 
 When the valve is not sticky, the cause of the loop's behaviour is named from what
 the linear fit leaves:
