@@ -11,7 +11,7 @@ from pathlib import Path
 COLUMNS = ("rank", "name", "status", "stiction_detected", "cause", "slip_identified", "band_percent", "S", "J",
            "evidence", "evidence_estimation", "evidence_prediction", "evidence_prediction_estimation", "fitness",
            "fitness_kano", "fitness_linear", "oscillation", "oscillation_kano",
-           "period_samples", "model", "samples", "Ts", "file")
+           "period_samples", "model", "samples", "Ts", "note", "file")
 
 
 def _cell(v):
@@ -59,6 +59,7 @@ def write_html(report, path: Path) -> Path:
         cls = "sticky" if r["stiction_detected"] else ("" if ok else "error")
         pic = r.get("picture")
         thumb = f'<a href="{e(pic)}"><img src="{e(pic)}" alt="{e(r["name"])}"></a>' if pic else ""
+        note = f'<br><small>{e(r["note"])}</small>' if r.get("note") else ""
         verdict = ("no stiction" if not r["stiction_detected"] else
                    "stiction" if r.get("slip_identified") else "stiction (no slip seen)") if ok else "error"
         rows.append(
@@ -66,7 +67,7 @@ def write_html(report, path: Path) -> Path:
             f'<td class="verdict">{e(verdict)}</td><td>{e(str(r.get("cause") or ""))}</td>'
             f'<td class="num">{_fmt(r.get("band_percent"))}</td><td class="num">{_fmt(r.get("evidence"))}</td>'
             f'<td class="num">{_fmt(r.get("fitness"))}</td>'
-            f'<td>{"ok" if ok else e(r["status"])}</td><td>{thumb}</td></tr>'
+            f'<td>{"ok" if ok else e(r["status"])}{note}</td><td>{thumb}</td></tr>'
         )
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>jaxstiction screen</title>
@@ -76,7 +77,8 @@ def write_html(report, path: Path) -> Path:
 Ranked by stiction evidence (held-out simulation fitness gained by a Kano stiction
 valve over a linear valve, in points) and band. <i>cause</i> names what explains a loop
 that is not sticky. "No slip seen": the valve has a band but its slip jump is not
-identified, so a deadband (backlash) of that width fits as well.</p>
+identified, so a deadband (backlash) of that width fits as well. Notes under a
+loop's status say what to know before trusting its fit.</p>
 <table><thead><tr><th>#</th><th>loop</th><th>verdict</th><th>cause</th><th>band (% OP)</th>
 <th>evidence (points)</th><th>fitness (%)</th><th>status</th><th>picture</th></tr></thead>
 <tbody>

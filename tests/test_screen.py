@@ -3,6 +3,7 @@ spectral test, ranking and report files, the CLI contract, and a real Dask
 LocalCluster giving the single-process results."""
 
 import csv
+import html
 import json
 
 import numpy as np
@@ -221,9 +222,12 @@ def test_report_files(screened, tmp_path):
         rows = list(csv.DictReader(f))
     assert len(rows) == len(rep.loops)
     assert [r["name"] for r in rows] == [r["name"] for r in rep.loops]
+    assert [r["note"] for r in rows] == [r.get("note", "") for r in rep.loops]
     page = (tmp_path / "report.html").read_text()
     for r in rep.loops:
         assert r["name"] in page
+        if r.get("note"):
+            assert html.escape(r["note"]) in page
     assert "http" not in page  # no downloads: opens offline
     assert all(p.exists() for p in paths)
 
