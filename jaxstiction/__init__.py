@@ -46,6 +46,7 @@ from ._estimate import (
 )
 from ._filters import (
     fitness as fitness,
+    fitness_trend_free as fitness_trend_free,
     freq_response as freq_response,
     lagged as lagged,
     lfilter as lfilter,
