@@ -151,11 +151,12 @@ def test_screen_entries_equal_single_fits(fleet, screened):
 ])
 def test_verdict_rule(fleet, kano, deadband, sticky, slip):
     """The verdict's simulation rule on chosen scores: Kano against the linear valve
-    (60 %) decides `stiction_detected` (the prediction rule is switched off here); the
-    deadband only decides whether the slip is identified."""
+    (60 %) decides `stiction_detected` (the prediction rule is switched off here, and
+    the gains are the fit's plain scores, `trend_degree=None`); the deadband only
+    decides whether the slip is identified."""
     _, good, _ = fleet
     f = _with_scores(js.estimate(good[1], SMALL), kano, deadband, 0.5)
-    v = js.verdict(f, good[1], js.VerdictSettings(prediction_band=2.0))
+    v = js.verdict(f, good[1], js.VerdictSettings(prediction_band=2.0, trend_degree=None))
     assert bool(v.stiction_detected) == sticky and bool(v.slip_identified) == slip
     assert js.CAUSES[int(v.cause)] in (("stiction",) if sticky else ("none", "external_oscillation"))
 
@@ -169,14 +170,42 @@ def test_verdict_oscillation_the_kano_valve_leaves_is_not_its_cycle(fleet):
     _, good, _ = fleet
     f = _with_scores(js.estimate(good[1], SMALL), 80.0, 75.0, 0.5)
     same = eqx.tree_at(lambda m: m.physical, f, f.linear)
-    off = js.VerdictSettings(prediction_band=2.0, oscillation=0.0)
+    off = js.VerdictSettings(prediction_band=2.0, oscillation=0.0, trend_degree=None)
     v = js.verdict(same, good[1], off)
     assert bool(v.line_persists) and not bool(v.stiction_detected)
     assert js.CAUSES[int(v.cause)] == "external_oscillation"
     assert float(v.oscillation_kano) == pytest.approx(float(v.oscillation))
     # a line under the threshold in either residual does not clear the valve
-    v = js.verdict(same, good[1], js.VerdictSettings(prediction_band=2.0, oscillation=float(v.oscillation) + 1e-6))
+    v = js.verdict(same, good[1], js.VerdictSettings(prediction_band=2.0, oscillation=float(v.oscillation) + 1e-6,
+                                                    trend_degree=None))
     assert not bool(v.line_persists) and bool(v.stiction_detected)
+
+
+def test_verdict_gains_are_trend_free_simulation_gains(fleet):
+    """With a trend degree, `evidence` and `evidence_estimation` are the Kano valve's
+    gains over the linear valve in trend-free fitness, each part simulated from its own
+    estimated initial state; without one they are the fit's plain score differences."""
+    import equinox as eqx
+
+    from jaxstiction._criteria import simulate_scored
+    _, good, _ = fleet
+    loop = good[1]
+    f = js.estimate(loop, SMALL)
+    t = np.arange(loop.op.shape[0])
+    parts = (loop.mask * (t >= int(f.n_estimation)), loop.mask * (t < int(f.n_estimation)))
+
+    @eqx.filter_jit
+    def gains(f, lp):
+        def tf(m, w):
+            return js.fitness_trend_free(lp.pv, simulate_scored(m, lp.op, lp.pv, w)[0], w, 2)
+        return [tf(f.physical, w) - tf(f.linear, w) for w in parts]
+
+    v = js.verdict(f, loop)
+    assert [float(v.evidence), float(v.evidence_estimation)] == pytest.approx([float(g) for g in gains(f, loop)])
+    plain = js.verdict(f, loop, js.VerdictSettings(trend_degree=None))
+    assert float(plain.evidence) == pytest.approx(float(f.fitness_physical - f.fitness_linear))
+    assert float(plain.evidence_estimation) == pytest.approx(
+        float(f.fitness_physical_estimation - f.fitness_linear_estimation))
 
 
 def _with_scores(f, kano, deadband, band):
@@ -195,7 +224,7 @@ def test_verdict_prediction_rule(fleet):
     _, good, _ = fleet
     loop = good[1]
     f0 = js.estimate(loop, SMALL)
-    settings = js.VerdictSettings(prediction_band=0.2)
+    settings = js.VerdictSettings(prediction_band=0.2, trend_degree=None)
     score = js.ScoreSettings(init_count=settings.prediction_init_count)
     t = np.arange(loop.op.shape[0])
     parts = (loop.mask * (t >= int(f0.n_estimation)), loop.mask * (t < int(f0.n_estimation)))
