@@ -152,7 +152,7 @@ def cmd_screen(args):
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
-    # simulation and in short-horizon prediction
+    # trend-free simulation and in short-horizon prediction
     lines = [f"{'loop':<16} {'status':<6} {'stiction':<8} {'cause':<21} {'band %':>7} {'evidence':>8} "
              f"{'(pred.)':>8} {'fitness %':>9}"]
     for e in rep.loops:

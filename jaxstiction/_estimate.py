@@ -398,7 +398,7 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
 
     # --------------------------------------- the null models of the verdict
     # A linear valve, and a deadband (Kano with J = 0) at widths around the fitted
-    # S, each with the same Box-Jenkins linear part as the physical model: the
+    # S, each with a Box-Jenkins linear part of the physical model's structure: the
     # stiction verdict compares the Kano valve with both (see `_verdict`).
     pset = settings.physical
     x_lin = scale_input(op, lo, hi)

@@ -75,9 +75,9 @@ def write_html(report, path: Path) -> Path:
 <h1>Stiction screen</h1>
 <p>{c['loops']} loops: {c['ok']} ok, {c['errors']} errors, <b>{c['sticky']} sticky</b>.
 Ranked by stiction evidence (held-out simulation fitness gained by a Kano stiction
-valve over a linear valve, in points) and band. <i>cause</i> names what explains a loop
-that is not sticky. "No slip seen": the valve has a band but its slip jump is not
-identified, so a deadband (backlash) of that width fits as well. Notes under a
+valve over a linear valve, in points, with a slow trend removed from both) and band.
+<i>cause</i> names what explains a loop that is not sticky. "No slip seen": the valve
+has a band but its slip jump is not identified, so a deadband (backlash) of that width fits as well. Notes under a
 loop's status say what to know before trusting its fit.</p>
 <table><thead><tr><th>#</th><th>loop</th><th>verdict</th><th>cause</th><th>band (% OP)</th>
 <th>evidence (points)</th><th>fitness (%)</th><th>status</th><th>picture</th></tr></thead>

@@ -1,13 +1,15 @@
 r"""The stiction verdict of a fitted loop, and its cause when it is not stiction.
 
 A loop is called sticky when Kano's stiction model *beats a linear valve* on data it
-was not fitted on: [`jaxstiction.estimate`][] fits both with the same Box–Jenkins
-linear part, so the held-out fitness of the two differs only by the valve.
+was not fitted on: [`jaxstiction.estimate`][] fits both with a Box–Jenkins linear
+part of the same structure (orders, delays tried), each refitted with its valve, so
+the two differ by the valve and by what the linear part makes of it.
 The apparent band alone is no test: every fit has one.
 
 The Kano valve must win on the held-out and on the estimation samples, either
 
-- in simulation (the whole record from an estimated initial state), or
+- in simulation (each part from an initial state estimated on its opening
+  samples, a slow trend removed: see below), or
 - in `prediction_horizon`-step-ahead prediction, for a band of at least
   `prediction_band` of the OP range. A sticky valve in a loop whose setpoint rarely
   moves holds the loop in a limit cycle; a simulation of it drifts out of phase
@@ -146,7 +148,7 @@ class Verdict(eqx.Module):
     - `evidence_prediction`, `evidence_prediction_estimation`: the same gains in
       `prediction_horizon`-step prediction.
     - `slip_evidence`, `slip_evidence_estimation`: the Kano valve's gain over a
-      deadband (J = 0).
+      deadband (J = 0), in the plain fitness (34) that `estimate` scored.
     - `band_fraction`: Kano's S as a fraction of the OP range.
     - `oscillation`: share of the linear model's residual power in its strongest
       narrow band, at period `period` (samples); `oscillation_kano`, `period_kano`:
