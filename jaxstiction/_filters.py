@@ -7,6 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._linalg import apply_qt, householder
+
 
 def _pad(b, a):
     n = max(b.shape[0], a.shape[0])
@@ -111,12 +113,11 @@ def fitness_trend_free(y, yhat, mask, degree: int):
     basis = [jnp.ones_like(x), x]
     for k in range(2, degree + 1):  # Legendre's recurrence
         basis.append(((2 * k - 1) * x * basis[-1] - (k - 1) * basis[-2]) / k)
-    q, _ = jnp.linalg.qr(jnp.stack(basis[: degree + 1], 1) * mask[:, None])
+    # Householder QR in pure JAX (no batched LAPACK under vmap: see `_linalg`); the
+    # part of v off the basis has the norm of Q^T v below its first degree + 1 rows.
+    V, _ = householder(jnp.stack(basis[: degree + 1], 1) * mask[:, None])
 
-    def detrended(v):
-        v = mask * v
-        return mask * (v - q @ (q.T @ v))
+    def detrended_norm(v):
+        return jnp.linalg.norm(apply_qt(V, mask * v)[degree + 1:])
 
-    num = jnp.linalg.norm(detrended(y - jnp.asarray(yhat)))
-    den = jnp.linalg.norm(detrended(y))
-    return 100.0 * (1.0 - num / den)
+    return 100.0 * (1.0 - detrended_norm(y - jnp.asarray(yhat)) / detrended_norm(y))
