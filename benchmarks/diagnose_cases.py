@@ -4,6 +4,7 @@
     python benchmarks/diagnose_cases.py --seeds 10-19    # other seeds
     python benchmarks/diagnose_cases.py --cases P1,P5 --json
     python benchmarks/diagnose_cases.py --variants --seeds 100-104   # other effect sizes
+    python benchmarks/diagnose_cases.py --variants 3 --seeds 200-204 # only their third batch
 
 Each run is exactly `jaxstiction.diagnose(scenario.full.loop, scenario.nominal)`:
 3000 samples, the first 2000 to fit, the last 1000 held out. Per case it prints how
@@ -90,7 +91,28 @@ VARIANTS = {
     "P9 a0.5": ("P9", (ActuatorLag(0.5),), ()),
     "P10 S3 J1 A5 P50": ("P10", (Kano(3.0, 1.0),), (Sinusoid(5.0, 50.0),)),
     "P10 S5 J2 A4 P60": ("P10", (Kano(5.0, 2.0),), (Sinusoid(4.0, 60.0),)),
+    # third batch: first run on seeds 200-204 with no change to the method after it
+    "P1 S5 J1.5": ("P1", (Kano(5.0, 1.5),), ()),
+    "P1 S4 J1": ("P1", (Kano(4.0, 1.0),), ()),
+    "P2 +3": ("P2", (DeadTime(3),), ()),
+    "P3 R20": ("P3", (EqualPercentage(20.0),), ()),
+    "P3 R50": ("P3", (EqualPercentage(50.0),), ()),
+    "P4 hi53.5": ("P4", (TravelLimits(hi=53.5),), ()),
+    "P4 lo48": ("P4", (TravelLimits(lo=48.0),), ()),
+    "P5 A6 P35": ("P5", (), (Sinusoid(6.0, 35.0),)),
+    "P5 A5 P70": ("P5", (), (Sinusoid(5.0, 70.0),)),
+    "P6 w4": ("P6", (Deadband(4.0),), ()),
+    "P6 w2.5": ("P6", (Deadband(2.5),), ()),
+    "P7 q1": ("P7", (), (Quantiser(1.0),)),
+    "P7 q3": ("P7", (), (Quantiser(3.0),)),
+    "P8 step 0.2": ("P8", (), (Drift(0.2),)),
+    "P8 step 0.4": ("P8", (), (Drift(0.4),)),
+    "P9 a0.7": ("P9", (ActuatorLag(0.7),), ()),
+    "P9 a0.85": ("P9", (ActuatorLag(0.85),), ()),
+    "P10 S4 J1 A5 P40": ("P10", (Kano(4.0, 1.0),), (Sinusoid(5.0, 40.0),)),
 }
+# the batches in the order they were added (--variants N runs batch N only)
+BATCHES = {1: list(VARIANTS)[:13], 2: list(VARIANTS)[13:31], 3: list(VARIANTS)[31:]}
 
 
 def base(case):
@@ -126,9 +148,13 @@ def main():
     p.add_argument("--seeds", type=seeds_arg, default=list(range(10)))
     p.add_argument("--cases", default=",".join(EXPECTED))
     p.add_argument("--json", action="store_true")
-    p.add_argument("--variants", action="store_true", help="the cases with other effect sizes (VARIANTS)")
+    p.add_argument("--variants", nargs="?", type=int, const=0, choices=[0, *BATCHES], metavar="BATCH",
+                   help="the cases with other effect sizes (VARIANTS): all, or only batch 1, 2 or 3")
     args = p.parse_args()
-    cases = list(VARIANTS) if args.variants else args.cases.split(",")
+    if args.variants is None:
+        cases = args.cases.split(",")
+    else:
+        cases = BATCHES[args.variants] if args.variants else list(VARIANTS)
     rows, t_all = {}, time.time()
     for case in cases:
         runs = []
