@@ -51,6 +51,16 @@ def _stops(u_open, count: int, S, J):
     return jnp.concatenate([up - J, dn + S, dn + J, up - S]), jnp.concatenate([one, one, -one, -one])
 
 
+def _exceeds(a, b, scale):
+    """`a > b`, decided as exact arithmetic would where the two are equal up to
+    rounding: a slip threshold met exactly (a quantised OP; the candidate initial
+    states of `_stops`, built to slip just past a level the input reaches) must not
+    slip or stick by the last bit, which would depend on OP's units and zero. The
+    margin, 1e-12 of `scale`, is far above rounding and far below any valve's
+    resolution."""
+    return a > b + 1e-12 * scale
+
+
 def _f(x) -> Array:
     """A parameter as an inexact JAX array (integers would truncate S, J)."""
     x = jnp.asarray(x)
@@ -103,6 +113,9 @@ class Kano(AbstractBlock):
         elif -d*(u - us) > S:     d = -d; y = u - d*(S-J)/2; stp = 0
         elif  d*(u - us) > J:     y = u - d*(S-J)/2; stp = 0
         else:                     y unchanged                   # stuck
+
+    A threshold met exactly (up to rounding) is not exceeded, whatever the units of
+    the input (see `_exceeds`).
     """
 
     S: Float[Array, ""] = eqx.field(converter=_f)
@@ -121,8 +134,9 @@ class Kano(AbstractBlock):
         us = jnp.where(stops, u_prev, us)
         stp = jnp.where(stops, 1.0, stp)
         moving = stp == 0
-        reverse = (~moving) & (-d * (u - us) > S)
-        same = (~moving) & (~reverse) & (d * (u - us) > J)
+        scale = jnp.abs(u) + jnp.abs(us) + S
+        reverse = (~moving) & _exceeds(-d * (u - us), S, scale)
+        same = (~moving) & (~reverse) & _exceeds(d * (u - us), J, scale)
         d = jnp.where(reverse, -d, d)
         go = moving | reverse | same
         y = jnp.where(go, u - d * (S - J) / 2, y)
@@ -178,7 +192,7 @@ class Choudhury(AbstractBlock):
         stuck = jnp.where(stick, 1.0, stuck)
         disp = x - x_ss
         band = jnp.where(jnp.sign(disp) == direction, J, S)
-        slip = (stuck == 1) & (jnp.abs(disp) > band)
+        slip = (stuck == 1) & _exceeds(jnp.abs(disp), band, jnp.abs(x) + jnp.abs(x_ss) + S)
         move = (stuck == 0) | slip
         y = jnp.where(move, x - sgn * (S - J) / 2, y)
         direction = jnp.where(move, sgn, direction)
@@ -215,7 +229,7 @@ class He(AbstractBlock):
         fs, fd = (self.S + self.J) / 2, (self.S - self.J) / 2
         y, u_prev, u_r = state
         u_r = u_r + (u - u_prev)
-        slip = jnp.abs(u_r) > fs
+        slip = _exceeds(jnp.abs(u_r), fs, jnp.abs(u) + fs)
         s = jnp.sign(u_r)
         y = jnp.where(slip, y + u_r - s * fd, y)
         u_r = jnp.where(slip, s * fd, u_r)

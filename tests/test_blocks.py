@@ -806,3 +806,19 @@ def test_other_initial_states(count):
     assert np.all(np.abs(ur) <= 3.5)
     pos = np.asarray(Deadband(3.0).initial_states(u_open, count)[0])
     assert np.all(pos >= float(jnp.min(u_open)) - 1.5) and np.all(pos <= float(jnp.max(u_open)) + 1.5)
+
+
+@pytest.mark.parametrize("cls", [Kano, Choudhury, He])
+def test_slips_do_not_depend_on_the_units_of_op(cls):
+    """OP in other units (a scale and a zero that round differently): the valve, from
+    each candidate initial state, slips at the same samples and its position follows
+    the units. The candidates are built to slip just past a level the input reaches,
+    an exact tie that rounding must not decide."""
+    rng = np.random.default_rng(3)
+    u = 50 + np.cumsum(rng.normal(0.0, 0.8, 120))
+    S, J = 4.0, 1.0
+    y = np.asarray(_candidate_outputs(cls(S, J), jnp.asarray(u)))
+    for a, c in [(1.1, 0.0), (1.0, 64.0), (0.013, -0.7)]:
+        ya = np.asarray(_candidate_outputs(cls(a * S, a * J), jnp.asarray(a * u + c)))
+        np.testing.assert_array_equal(np.diff(ya, axis=1) != 0, np.diff(y, axis=1) != 0)
+        np.testing.assert_allclose((ya - c) / a, y, rtol=1e-9, atol=1e-9)

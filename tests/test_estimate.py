@@ -280,3 +280,18 @@ def test_without_the_spline_family(no_spline, singles):
     assert int(got.kind) == 1 and float(got.fitness) == pytest.approx(float(got.fitness_physical))
     with pytest.raises(ValueError, match="use_spline"):
         js.Settings(use_spline=False, use_physical=False)
+
+
+def test_units_of_op_and_pv_do_not_change_the_fit(loops, no_spline):
+    """Real loops record OP and PV in any units (%, fractions, mA, signed, reverse
+    acting). An affine change of PV's units (here with a sign flip) and a change of
+    OP's scale and zero leave the fit the same: S, J and the band move with OP's
+    units, the fitness and the family do not."""
+    lp = loops[0]
+    got = js.estimate(eqx.tree_at(lambda t: (t.op, t.pv), lp, (2.0 * lp.op + 64.0, 250.0 - 4.0 * lp.pv)), NO_SPLINE)
+    assert code(got.result) == code(no_spline.result)
+    assert int(got.kind) == int(no_spline.kind)
+    for name in ("S", "J", "band_percent"):
+        np.testing.assert_allclose(getattr(got, name), 2.0 * getattr(no_spline, name), rtol=1e-6)
+    for name in ("fitness", "fitness_estimation", "fitness_linear", "fitness_deadband"):
+        np.testing.assert_allclose(getattr(got, name), getattr(no_spline, name), rtol=1e-6, atol=1e-6)
