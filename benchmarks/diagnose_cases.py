@@ -56,8 +56,9 @@ EXPECTED = {"P0": "none", "P1": "stiction", "P2": "dead_time", "P3": "valve_char
             "P5": "external_oscillation", "P6": "deadband", "P7": "quantization", "P8": "drift",
             "P9": "actuator_lag", "P10": "stiction"}
 GAIN_EXPECTED = {"P1", "P2", "P3", "P4", "P5", "P6", "P9", "P10"}  # where a deterministic block can help
-# other effect sizes: name -> (the P-case it varies, input chain, output blocks)
-VARIANTS = {
+# other effect sizes, in the batches they were added in: batch -> name -> (the P-case
+# it varies, input chain, output blocks)
+BATCHES = {1: {
     "P1 S6 J2": ("P1", (Kano(6.0, 2.0),), ()),
     "P1 S2 J0.5": ("P1", (Kano(2.0, 0.5),), ()),
     "P2 +4": ("P2", (DeadTime(4),), ()),
@@ -71,6 +72,7 @@ VARIANTS = {
     "P9 a0.9": ("P9", (ActuatorLag(0.9),), ()),
     "P10 S6 J2 A3 P45": ("P10", (Kano(6.0, 2.0),), (Sinusoid(3.0, 45.0),)),
     "P5 narrow-band rms 3.5 P40": ("P5", (), (NarrowBand(3.5, 40.0),)),
+}, 2: {
     # added later (probed on seeds 100-103 first; the travel-limit grid was widened
     # after "P4 hi55" and P4 seed 2)
     "P1 S3 J2": ("P1", (Kano(3.0, 2.0),), ()),
@@ -91,7 +93,8 @@ VARIANTS = {
     "P9 a0.5": ("P9", (ActuatorLag(0.5),), ()),
     "P10 S3 J1 A5 P50": ("P10", (Kano(3.0, 1.0),), (Sinusoid(5.0, 50.0),)),
     "P10 S5 J2 A4 P60": ("P10", (Kano(5.0, 2.0),), (Sinusoid(4.0, 60.0),)),
-    # third batch: first run on seeds 200-204 with no change to the method after it
+}, 3: {
+    # first run on seeds 200-204 with no change to the method after it
     "P1 S5 J1.5": ("P1", (Kano(5.0, 1.5),), ()),
     "P1 S4 J1": ("P1", (Kano(4.0, 1.0),), ()),
     "P2 +3": ("P2", (DeadTime(3),), ()),
@@ -110,9 +113,8 @@ VARIANTS = {
     "P9 a0.7": ("P9", (ActuatorLag(0.7),), ()),
     "P9 a0.85": ("P9", (ActuatorLag(0.85),), ()),
     "P10 S4 J1 A5 P40": ("P10", (Kano(4.0, 1.0),), (Sinusoid(5.0, 40.0),)),
-}
-# the batches in the order they were added (--variants N runs batch N only)
-BATCHES = {1: list(VARIANTS)[:13], 2: list(VARIANTS)[13:31], 3: list(VARIANTS)[31:]}
+}}
+VARIANTS = {name: v for batch in BATCHES.values() for name, v in batch.items()}
 
 
 def base(case):
@@ -154,7 +156,7 @@ def main():
     if args.variants is None:
         cases = args.cases.split(",")
     else:
-        cases = BATCHES[args.variants] if args.variants else list(VARIANTS)
+        cases = list(BATCHES[args.variants] if args.variants else VARIANTS)
     rows, t_all = {}, time.time()
     for case in cases:
         runs = []
