@@ -9,7 +9,8 @@ independent 1500-sample validation record with its initial state estimated from 
 opening samples of the measured PV (exactly what `jaxstiction demo --seed S` does),
 and compare with the truth (Kano S = 20, J = 2). Prints per seed and a summary
 against the targets: noise-free fitness >= 95 % (>= 85 % on all), within 2 points of
-the ceiling, S within +-1 of 20 and J within +-0.5 of 2.
+the ceiling, S within +-1 of 20 and J within +-0.5 of 2, and how often the fit's
+95 % intervals of S and J hold the truth.
 
 Two reference columns say what the data allow:
 - `truth`: the true plant model, scored the same way (initial state estimated);
@@ -106,6 +107,11 @@ def references(seed):
     return nf(sc.plant), nf(oracle), nf(cell)
 
 
+def _covers(interval, truth):
+    """Whether the fit's 95 % interval holds the truth (False when there is none)."""
+    return bool(interval) and interval[0] <= truth <= interval[1]
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=seeds_arg, default=list(range(10)), help="e.g. 0-9 or 3,5,7")
@@ -126,6 +132,8 @@ def main():
             gap=pay["ceiling"] - pay["fitness_validation"],
             S=st["S"],
             J=st["J"],
+            S_covered=_covers(st.get("S_interval"), 20.0),
+            J_covered=_covers(st.get("J_interval"), 2.0),
             model=pay["fit"]["model"]["kind"],
             paper_method=pay["fitness_paper_method"],
             truth=truth,
@@ -138,6 +146,8 @@ def main():
             print(
                 f"seed {seed:3d}: noise-free {row['noise_free']:7.2f} %  measured {row['measured']:6.2f} % "
                 f"(ceiling {row['ceiling']:.2f}, gap {row['gap']:+.2f})  S {row['S']:.3f}  J {row['J']:.3f}  "
+                f"{'' if row['S_covered'] else '(S outside its interval) '}"
+                f"{'' if row['J_covered'] else '(J outside its interval) '}"
                 f"{row['model']:<8s} [truth {truth:.2f}, oracle {oracle:.2f}, cell {cell:.2f}]  "
                 f"paper's method {row['paper_method']:.4g} %  "
                 f"[{row['seconds']:.0f} s]",
@@ -155,6 +165,9 @@ def main():
         S_within_1=sum(abs(r["S"] - 20) <= 1 for r in rows),
         J_within_half=sum(abs(r["J"] - 2) <= 0.5 for r in rows),
         SJ_both=sum(abs(r["S"] - 20) <= 1 and abs(r["J"] - 2) <= 0.5 for r in rows),
+        S_interval_covers=sum(r["S_covered"] for r in rows),
+        J_interval_covers=sum(r["J_covered"] for r in rows),
+        both_intervals_cover=sum(r["S_covered"] and r["J_covered"] for r in rows),
         truth_ge95=sum(r["truth"] >= 95 for r in rows),
         oracle_ge95=sum(r["oracle"] >= 95 for r in rows),
         oracle_median=statistics.median(r["oracle"] for r in rows),
@@ -173,6 +186,8 @@ def main():
             f">= 85 %: {summary['noise_free_ge85']}/{n}; within 2 of ceiling: {summary['within_2_of_ceiling']}/{n} "
             f"(largest gap {summary['gap_max']:.2f}); S within 1: {summary['S_within_1']}/{n}, "
             f"J within 0.5: {summary['J_within_half']}/{n}, both: {summary['SJ_both']}/{n}; "
+            f"95 % intervals hold S on {summary['S_interval_covers']}/{n}, J on {summary['J_interval_covers']}/{n}, "
+            f"both on {summary['both_intervals_cover']}/{n}; "
             f"{summary['total_seconds']:.0f} s\nreferences, noise-free >= 95 %: "
             f"true model {summary['truth_ge95']}/{n}; oracle (true valve, fitted linear part) "
             f"{summary['oracle_ge95']}/{n}, median {summary['oracle_median']:.2f} %; "
