@@ -256,8 +256,9 @@ def build_parser():
                    help="nominal model (JSON); without it a linear-valve model is fitted first")
     g.add_argument("--holdout", type=float, default=1 / 3, metavar="FRACTION", help="held-out fraction at the end")
     g.add_argument("--bootstrap", type=int, default=39, help="parametric bootstrap replicates")
-    g.add_argument("--ts", type=float, default=None)
-    g.add_argument("--name", default=None)
+    g.add_argument("--ts", type=float, default=None,
+                   help="sampling time (s) (default: the nominal model's, else the file's t column)")
+    g.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
     g.set_defaults(func=cmd_diagnose)
     return p
 
