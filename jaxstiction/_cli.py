@@ -196,6 +196,7 @@ def cmd_diagnose(args):
     from ._nominal import nominal_ts, read_nominal
     from ._read import loop_name, read_loop
 
+    settings = DiagnoseSettings(holdout=args.holdout, bootstrap=args.bootstrap)  # bad options fail first
     nominal = read_nominal(args.model) if args.model else None
     ts = args.ts if args.ts is not None else (nominal_ts(args.model) if args.model else None)
     loop = read_loop(args.file, ts=ts, name=args.name)
@@ -203,8 +204,7 @@ def cmd_diagnose(args):
     _log(f"diagnose: {name}: {int(loop.op.shape[0])} samples"
          + (f", nominal model {args.model}" if args.model else ", no nominal model: fitting a linear-valve one"))
     t0 = time.time()
-    d = diagnose(loop, nominal, DiagnoseSettings(holdout=args.holdout, bootstrap=args.bootstrap),
-                 progress=lambda m: _log(f"diagnose: {m}"))
+    d = diagnose(loop, nominal, settings, progress=lambda m: _log(f"diagnose: {m}"))
     _log(f"diagnose: done in {time.time() - t0:.1f} s")
     if args.out:
         from ._plots import write_diagnosis_figures
@@ -255,7 +255,7 @@ def build_parser():
     g.add_argument("--model", metavar="NOMINAL.json", default=None,
                    help="nominal model (JSON); without it a linear-valve model is fitted first")
     g.add_argument("--holdout", type=float, default=1 / 3, metavar="FRACTION", help="held-out fraction at the end")
-    g.add_argument("--bootstrap", type=int, default=39, help="parametric bootstrap replicates")
+    g.add_argument("--bootstrap", type=int, default=39, metavar="N", help="parametric bootstrap replicates")
     g.add_argument("--ts", type=float, default=None,
                    help="sampling time (s) (default: the nominal model's, else the file's t column)")
     g.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")

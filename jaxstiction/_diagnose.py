@@ -117,8 +117,10 @@ JOINT_ESTIMATE = dataclasses.replace(
 
 @dataclasses.dataclass(frozen=True)
 class DiagnoseSettings:
-    """`holdout`: fraction of the record held out at its end; `bootstrap`: parametric
-    bootstrap replicates (the smallest p-value is 1/(bootstrap+1)); `alpha`:
+    """`holdout`: fraction of the record held out at its end, in (0, 1); `bootstrap`:
+    parametric bootstrap replicates, at least 2 (each family's null is a normal
+    approximation of their statistics, so its p-values are not limited to
+    1/(bootstrap+1); 19 or more are advised); `alpha`:
     family-wise significance level; `order`: linear order when no nominal model is
     given; `max_delay`: delays tried then; `grid`: points per axis of the stiction and
     deadband grids; `periods`: periods tried for an external oscillation.
@@ -138,6 +140,19 @@ class DiagnoseSettings:
     seed: int = 0
     joint: Settings = JOINT_ESTIMATE
     joint_bootstrap: int = 9
+
+    def __post_init__(self):
+        def whole(v):
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+        if not (isinstance(self.holdout, (int, float)) and 0.0 < self.holdout < 1.0):
+            raise ValueError(f"`holdout` must be a fraction between 0 and 1 (the held-out part), got {self.holdout!r}")
+        if not (whole(self.bootstrap) and self.bootstrap >= 2):
+            raise ValueError(f"`bootstrap` must be a whole number of replicates, at least 2, got {self.bootstrap!r}")
+        if not (whole(self.joint_bootstrap) and self.joint_bootstrap >= 0):
+            raise ValueError(f"`joint_bootstrap` must be a whole number >= 0, got {self.joint_bootstrap!r}")
+        if not (isinstance(self.alpha, (int, float)) and 0.0 < self.alpha < 1.0):
+            raise ValueError(f"`alpha` must be a significance level between 0 and 1, got {self.alpha!r}")
 
 
 def _ranked(accepted: list[Finding]) -> list[Finding]:

@@ -382,6 +382,20 @@ def test_bad_input_one_line():
         js.diagnose(js.make_loop(np.asarray(loop.op)[:250], np.asarray(loop.pv)[:250]), sc.nominal, FAST)
 
 
+@pytest.mark.parametrize("field, value, named", [("holdout", 0.0, "holdout"), ("holdout", 1.5, "holdout"),
+                                                  ("bootstrap", 1, "bootstrap"), ("bootstrap", 19.5, "bootstrap"),
+                                                  ("joint_bootstrap", -1, "joint_bootstrap"), ("alpha", 0.0, "alpha")])
+def test_bad_settings_are_named(field, value, named):
+    with pytest.raises(ValueError, match=named):
+        js.DiagnoseSettings(**{field: value})
+
+
+@pytest.mark.parametrize("option, value", [("--holdout", "1.5"), ("--bootstrap", "0")])
+def test_cli_diagnose_bad_option_one_line(tmp_path, option, value):
+    f = _csv(tmp_path / "x.csv", np.linspace(0.0, 1.0, 400), np.linspace(0.0, 1.0, 400))
+    _assert_one_line_error(run("diagnose", str(f), option, value, "--json"), option[2:])
+
+
 def test_cli_diagnose_json(tmp_path):
     sc = js.make_scenario("P1", seed=1)
     rec = sc.full
