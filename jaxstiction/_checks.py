@@ -1,4 +1,5 @@
-"""Input checks for loop data (the "Errors" part of the command-line contract).
+"""Input checks for loop data (the "Errors" part of the command-line contract) and
+for the whole-number fields of the settings Modules.
 
 Every problem with user data is reported as a [`jaxstiction.LoopDataError`][], a
 `ValueError` whose message is a single line naming the problem, so that the command
@@ -14,7 +15,7 @@ import re
 import numpy as np
 
 
-__all__ = ["LoopDataError", "check_loop"]
+__all__ = ["LoopDataError", "check_loop", "check_counts"]
 
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
@@ -36,6 +37,18 @@ class LoopDataError(ValueError):
 
     def __init__(self, message: object) -> None:
         super().__init__(_one_line(message))
+
+
+def check_counts(settings: object, *, positive: tuple = (), nonnegative: tuple = ()) -> None:
+    """Raise a `ValueError` naming the first field of `settings` in `positive` that is
+    not a whole number >= 1, or in `nonnegative` that is not one >= 0 (a settings
+    Module's `__check_init__`: a grid of 0 points or a negative step count would
+    otherwise fail deep inside a trace, or silently do nothing)."""
+    for names, least in ((positive, 1), (nonnegative, 0)):
+        for name in names:
+            v = getattr(settings, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise ValueError(f"`{type(settings).__name__}.{name}` must be a whole number >= {least}, got {v!r}")
 
 
 def _as_column(values: object, column: str, where: str) -> np.ndarray:

@@ -8,6 +8,7 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 
+from ._checks import check_counts
 from ._filters import fitness
 from ._models import LoopModel
 
@@ -41,6 +42,11 @@ class ScoreSettings(eqx.Module):
     init_fraction: float = eqx.field(static=True, default=0.2)
     init_min: int = eqx.field(static=True, default=50)
     init_count: int = eqx.field(static=True, default=40)
+
+    def __check_init__(self):
+        check_counts(self, positive=("init_min", "init_count"))
+        if not 0.0 < self.init_fraction <= 1.0:
+            raise ValueError(f"`ScoreSettings.init_fraction` must be in (0, 1], got {self.init_fraction!r}")
 
 
 def _rolled(model: LoopModel, op, pv, weights, settings: ScoreSettings):

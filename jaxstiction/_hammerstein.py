@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from ._checks import check_counts
 from ._filters import fitness, lfilter, steady_state
 from ._gram import whitening
 from ._linalg import HouseholderQR, is_stable
@@ -53,6 +54,15 @@ class SplineSettings(eqx.Module):
     polish: bool = eqx.field(static=True, default=True)
     polish_steps: int = eqx.field(static=True, default=60)
     range_factor: float = eqx.field(static=True, default=1.0)
+
+    def __check_init__(self):
+        check_counts(self, positive=("arx_order", "max_order", "max_delay", "relax_steps", "welch_segment"),
+                     nonnegative=("polish_steps",))
+        if not self.knot_counts or any(isinstance(k, bool) or not isinstance(k, int) or k < 2
+                                       for k in self.knot_counts):
+            raise ValueError(f"`SplineSettings.knot_counts` must be whole numbers >= 2, got {self.knot_counts!r}")
+        if self.compression not in ("qr", "gram"):
+            raise ValueError(f"`SplineSettings.compression` must be 'qr' or 'gram', got {self.compression!r}")
 
 
 class HammersteinModel(eqx.Module):

@@ -14,6 +14,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._blocks import Kano
+from ._checks import check_counts
 from ._filters import lagged, lfilter, steady_state
 from ._linalg import gram_cholesky, HouseholderQR, is_stable, lstsq as _lstsq
 from ._misc import chunked_vmap
@@ -67,6 +68,15 @@ class PhysicalSettings(eqx.Module):
     line: int = eqx.field(static=True, default=41)
     rounds: int = eqx.field(static=True, default=3)
     burn_in: int = eqx.field(static=True, default=10)
+
+    def __check_init__(self):
+        check_counts(self, positive=("num_S", "num_J", "arx_order", "order", "max_delay", "starts", "refine",
+                                     "refine_S", "final", "oe_steps", "chunk", "memory_budget", "init_count",
+                                     "line"),
+                     nonnegative=("polish_starts", "rounds", "burn_in"))
+        if not self.max_band > 0 or not self.interval_span >= 0:
+            raise ValueError("`PhysicalSettings.max_band` must be > 0 and `interval_span` >= 0, "
+                             f"got {self.max_band!r} and {self.interval_span!r}")
 
 
 def _arx_design(x, y, order: int, delay):

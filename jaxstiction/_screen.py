@@ -26,6 +26,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ._checks import check_counts
 from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
 from ._misc import json_number as _r
@@ -88,6 +89,9 @@ class ScreenSettings(eqx.Module):
     verdict: VerdictSettings = VerdictSettings()
     chunk: int = eqx.field(static=True, default=2)
     samples_per_call: int = eqx.field(static=True, default=8000)
+
+    def __check_init__(self):
+        check_counts(self, positive=("chunk", "samples_per_call"))
 
 
 def bucket_length(n: int) -> int:

@@ -282,6 +282,27 @@ def test_without_the_spline_family(no_spline, singles):
         js.Settings(use_spline=False, use_physical=False)
 
 
+@pytest.mark.parametrize("make, named", [
+    (lambda: js.SplineSettings(compression="lu"), "compression"),
+    (lambda: js.SplineSettings(knot_counts=()), "knot_counts"),
+    (lambda: js.SplineSettings(knot_counts=(4, 1)), "knot_counts"),
+    (lambda: js.SplineSettings(relax_steps=0), "relax_steps"),
+    (lambda: js.PhysicalSettings(num_S=0), "num_S"),
+    (lambda: js.PhysicalSettings(oe_steps=2.5), "oe_steps"),
+    (lambda: js.PhysicalSettings(rounds=-1), "rounds"),
+    (lambda: js.PhysicalSettings(max_band=0.0), "max_band"),
+    (lambda: js.ScoreSettings(init_fraction=1.5), "init_fraction"),
+    (lambda: js.ScoreSettings(init_count=True), "init_count"),
+    (lambda: js.ScreenSettings(chunk=0), "chunk"),
+])
+def test_bad_settings_are_named(make, named):
+    """A settings field that cannot work (a grid of no points, an unknown method) is
+    a `ValueError` naming it when the settings are made, not a failure deep in a
+    trace."""
+    with pytest.raises(ValueError, match=named):
+        make()
+
+
 def test_units_of_op_and_pv_do_not_change_the_fit(loops, no_spline):
     """Real loops record OP and PV in any units (%, fractions, mA, signed, reverse
     acting). An affine change of PV's units (here with a sign flip) and a change of
