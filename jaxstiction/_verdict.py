@@ -84,6 +84,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from ._checks import check_counts
 from ._criteria import predicted, ScoreSettings, simulate_scored
 from ._estimate import estimation_parts, RESULTS
 from ._filters import fitness, fitness_trend_free
@@ -134,6 +135,11 @@ class VerdictSettings(eqx.Module):
     max_fraction: float = eqx.field(static=True, default=0.25)
     same_line: float = eqx.field(static=True, default=0.1)
     trend_degree: int | None = eqx.field(static=True, default=2)
+
+    def __check_init__(self):
+        check_counts(self, positive=("prediction_horizon", "prediction_init_count"))
+        if self.trend_degree is not None:
+            check_counts(self, nonnegative=("trend_degree",))
 
 
 class Verdict(eqx.Module):

@@ -294,6 +294,8 @@ def test_without_the_spline_family(no_spline, singles):
     (lambda: js.ScoreSettings(init_fraction=1.5), "init_fraction"),
     (lambda: js.ScoreSettings(init_count=True), "init_count"),
     (lambda: js.ScreenSettings(chunk=0), "chunk"),
+    (lambda: js.VerdictSettings(prediction_horizon=0), "prediction_horizon"),
+    (lambda: js.VerdictSettings(trend_degree=-1), "trend_degree"),
 ])
 def test_bad_settings_are_named(make, named):
     """A settings field that cannot work (a grid of no points, an unknown method) is
