@@ -39,6 +39,11 @@ class LoopDataError(ValueError):
         super().__init__(_one_line(message))
 
 
+def is_count(v: object, least: int) -> bool:
+    """Whether `v` is a whole number (not a bool) of at least `least`."""
+    return not isinstance(v, bool) and isinstance(v, (int, np.integer)) and v >= least
+
+
 def check_counts(settings: object, *, positive: tuple = (), nonnegative: tuple = ()) -> None:
     """Raise a `ValueError` naming the first field of `settings` in `positive` that is
     not a whole number >= 1, or in `nonnegative` that is not one >= 0 (a settings
@@ -47,7 +52,7 @@ def check_counts(settings: object, *, positive: tuple = (), nonnegative: tuple =
     for names, least in ((positive, 1), (nonnegative, 0)):
         for name in names:
             v = getattr(settings, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+            if not is_count(v, least):
                 raise ValueError(f"`{type(settings).__name__}.{name}` must be a whole number >= {least}, got {v!r}")
 
 

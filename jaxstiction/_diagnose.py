@@ -46,6 +46,7 @@ import numpy as np
 from ._blocks import EqualPercentage, Sinusoid
 from ._candidates import _arma11, _fit_sinusoid, _quantisation
 from ._characteristic import rangeability_profile
+from ._checks import check_counts, is_count
 from ._drift import drift_noise_model
 from ._estimate import Settings
 from ._filters import lfilter
@@ -142,15 +143,11 @@ class DiagnoseSettings:
     joint_bootstrap: int = 9
 
     def __post_init__(self):
-        def whole(v):
-            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
         if not (isinstance(self.holdout, (int, float)) and 0.0 < self.holdout < 1.0):
             raise ValueError(f"`holdout` must be a fraction between 0 and 1 (the held-out part), got {self.holdout!r}")
-        if not (whole(self.bootstrap) and self.bootstrap >= 2):
+        if not is_count(self.bootstrap, 2):
             raise ValueError(f"`bootstrap` must be a whole number of replicates, at least 2, got {self.bootstrap!r}")
-        if not (whole(self.joint_bootstrap) and self.joint_bootstrap >= 0):
-            raise ValueError(f"`joint_bootstrap` must be a whole number >= 0, got {self.joint_bootstrap!r}")
+        check_counts(self, nonnegative=("joint_bootstrap",))
         if not (isinstance(self.alpha, (int, float)) and 0.0 < self.alpha < 1.0):
             raise ValueError(f"`alpha` must be a significance level between 0 and 1, got {self.alpha!r}")
 
