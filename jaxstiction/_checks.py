@@ -117,6 +117,7 @@ def check_loop(
     min_length: int = 1,
     name: str = "loop",
     require_variation: bool = True,
+    samples: str = "samples",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Check one loop's OP and PV records; return them as float64 arrays.
 
@@ -140,6 +141,8 @@ def check_loop(
     - `name`: the loop or file name used as prefix of the message.
     - `require_variation`: run checks 6 and 7. [`jaxstiction.read_loop`][] turns this
       off (it only checks structure, NaN and length); estimators leave it on.
+    - `samples`: what the records are, in the messages of checks 6 and 7
+      (`"estimation samples"` when they are part of a longer record).
 
     **Returns:** `(op, pv)` as one-dimensional float64 NumPy arrays.
     """
@@ -164,13 +167,13 @@ def check_loop(
         if _is_constant(op_arr):
             raise LoopDataError(
                 f"{where}`OP` is constant ({float(op_arr[0]):.6g} "
-                f"over all {n_op} samples); "
+                f"over all {n_op} {samples}); "
                 "stiction cannot be identified without valve movement"
             )
         if _is_constant(pv_arr):
             raise LoopDataError(
                 f"{where}`PV` is constant ({float(pv_arr[0]):.6g} "
-                f"over all {n_pv} samples); "
+                f"over all {n_pv} {samples}); "
                 "the process response cannot be identified"
             )
     return op_arr, pv_arr

@@ -242,7 +242,8 @@ def checked(op, pv, name: str, settings: Settings) -> tuple[np.ndarray, np.ndarr
         raise LoopDataError(
             f"{name}: needs at least {need} estimation samples for the chosen orders and delays, got {n_est} "
             f"({n} in the record, {n - n_est} held out for validation{hint})")
-    check_loop(op[:n_est], pv[:n_est], name=name, min_length=need)
+    part = "samples" if n_est == n else f"estimation samples, the first of {n}"
+    check_loop(op[:n_est], pv[:n_est], name=name, min_length=need, samples=part)
     return op, pv
 
 

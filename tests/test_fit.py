@@ -20,7 +20,9 @@ def _loop(n=800, seed=0):
         (lambda op, pv: (op, pv[:-1]), "samples but"),
         (lambda op, pv: (np.where(np.arange(op.size) == 7, np.nan, op), pv), "NaN"),
         (lambda op, pv: (op, np.where(np.arange(pv.size) == 3, np.inf, pv)), "inf"),
-        (lambda op, pv: (np.full_like(op, 42.0), pv), "constant"),
+        (lambda op, pv: (np.full_like(op, 42.0), pv), r"constant \(42 over all 533 estimation samples, the first of"),
+        # moving only in the held-out part: the message says which part is constant
+        (lambda op, pv: (np.where(np.arange(op.size) < 600, 42.0, op), pv), "533 estimation samples"),
         (lambda op, pv: (op[:60], pv[:60]), "at least"),
     ],
 )
