@@ -145,7 +145,7 @@ def _slip_on_proven_band(stiction: Finding, deadband: Finding | None, lr_slip: f
     the finding is stiction (accepted, the deadband marked as subsumed); otherwise
     both are returned as they are.
 
-    A deadband is J = 0 (DESIGN §3), so naming one while J is significantly above 0
+    A deadband is the Kano valve with J = 0, so naming one while J is significantly above 0
     contradicts the evidence. The Kano valve's own held-out simulation can still lose
     to the deadband's, and to the nominal's, when a slip falls at another time held
     out: on CHEM10 the fitted S (1.885 % of OP) exceeds the OP swing of the held-out
