@@ -25,6 +25,6 @@ def test_notebook_stored_as_run(path):
     assert counts == list(range(1, len(code) + 1)), f"{path.name}: cells not run in order from a fresh kernel"
     errors = [o for c in code for o in c.outputs if o.output_type == "error"]
     assert not errors, f"{path.name}: stored error {errors[0].ename}: {errors[0].evalue}"
-    # every figure cell left a picture
+    # the figures are stored with the rest (at least one picture)
     images = [o for c in code for o in c.outputs if "image/png" in o.get("data", {})]
     assert images, f"{path.name} stores no figure"
