@@ -215,6 +215,23 @@ def cmd_diagnose(args):
     return 0
 
 
+def _version() -> str:
+    """`jaxstiction X (jax Y, jaxlib Z)`, from the installed metadata: the exported
+    programs and the lean compiler flag depend on the JAX versions, so a report of a
+    problem needs all three."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from . import __version__
+
+    def _of(dist):
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            return "not installed"
+
+    return f"jaxstiction {__version__} (jax {_of('jax')}, jaxlib {_of('jaxlib')})"
+
+
 def build_parser():
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -223,6 +240,8 @@ def build_parser():
         prog="jaxstiction",
         description="Identify sticky control valves and the process behind them from OP/PV data.",
     )
+    p.add_argument("--version", action="version", version=_version(),
+                   help="print the versions of jaxstiction, JAX and jaxlib, and exit")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", parents=[common], help="run the paper_sim scenario end to end")
     d.add_argument("--seed", type=int, default=0)

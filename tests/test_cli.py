@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from helpers import run
 
+import jaxstiction as js
+
 
 def _csv(path, op, pv, header="t,OP,PV"):
     rows = [header] + [f"{i},{a},{b}" for i, (a, b) in enumerate(zip(op, pv))]
@@ -109,6 +111,15 @@ def test_demo_json_contract_and_no_run_away_choice(tmp_path):
 def test_help(cmd):
     res = run(*cmd)
     assert res.returncode == 0 and "usage" in res.stdout
+
+
+def test_version():
+    """`--version` names the package and the JAX versions its compiled programs depend on."""
+    from importlib.metadata import version
+
+    res = run("--version")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == f"jaxstiction {js.__version__} (jax {version('jax')}, jaxlib {version('jaxlib')})"
 
 
 def test_import_leaves_the_backend_alone():
