@@ -23,7 +23,7 @@ from ._blocks import (
     Sinusoid as Sinusoid,
     TravelLimits as TravelLimits,
 )
-from ._checks import check_loop as check_loop, LoopDataError as LoopDataError
+from ._checks import check_loop as check_loop, LoopDataError as LoopDataError, LoopDataWarning as LoopDataWarning
 from ._criteria import (
     predict_scored as predict_scored,
     score as score,

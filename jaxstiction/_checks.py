@@ -39,6 +39,16 @@ class LoopDataError(ValueError):
         super().__init__(_one_line(message))
 
 
+class LoopDataWarning(UserWarning):
+    """Loop data that can be used but may mislead, e.g. a time column that is not
+    evenly spaced (the samples are then taken as equally spaced). The message is one
+    line and names the file. Issued by [`jaxstiction.read_loop`][]; the command line
+    prints it as `warning: ...` on stderr, and `screen` adds it to the loop's `note`."""
+
+    def __init__(self, message: object) -> None:
+        super().__init__(_one_line(message))
+
+
 def is_count(v: object, least: int) -> bool:
     """Whether `v` is a whole number (not a bool) of at least `least`."""
     return not isinstance(v, bool) and isinstance(v, (int, np.integer)) and v >= least

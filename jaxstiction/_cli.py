@@ -2,7 +2,8 @@
 
 Every command takes `--json` (exactly one JSON object on stdout, nothing else there)
 and `--out DIR` (pictures and a report). Progress and messages go to stderr. Bad input
-gives a one-line `error: ...` on stderr and exit status 2.
+gives a one-line `error: ...` on stderr and exit status 2; data that can be used but
+may mislead (an unevenly spaced time column) a one-line `warning: ...`.
 """
 
 import argparse
@@ -10,6 +11,7 @@ import json
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 
@@ -371,8 +373,15 @@ def main(argv=None) -> int:
     # The application (not the library) chooses float64, recommended for identification.
     jax.config.update("jax_enable_x64", True)
     _compilation_cache()
-    from ._checks import LoopDataError
+    from ._checks import LoopDataError, LoopDataWarning
 
+    def show(message, category, *rest):
+        if issubclass(category, LoopDataWarning):
+            _log(f"warning: {message}")  # one line, like the errors
+        else:
+            default_show(message, category, *rest)
+
+    default_show, warnings.showwarning = warnings.showwarning, show
     try:
         return args.func(args)
     except (LoopDataError, ValueError, OSError) as e:
@@ -386,6 +395,8 @@ def main(argv=None) -> int:
         msg = " ".join(f"{type(e).__name__}: {e}".split())[:500]
         print(f"error: internal failure ({msg}); please report it", file=sys.stderr)
         return EXIT_INTERNAL
+    finally:
+        warnings.showwarning = default_show
 
 
 if __name__ == "__main__":

@@ -23,13 +23,14 @@ import csv
 import io
 import math
 import os
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ._checks import _as_column, _nonfinite_message, check_loop, LoopDataError
+from ._checks import _as_column, _nonfinite_message, check_loop, LoopDataError, LoopDataWarning
 from ._loop import Loop, make_loop
 
 
@@ -109,6 +110,17 @@ def _ts_from_t(t: np.ndarray, where: str) -> float | None:
             f"`t` is not increasing in {where} (median time step {step:g} s); "
             "fix the time column or give the sampling time explicitly (ts)"
         )
+    # Gaps (missing samples), repeated or reversed stamps: the estimators take the
+    # samples as equally spaced, so say so. Jitter within half a step is not reported.
+    steps = np.diff(t)
+    off = np.abs(steps - step) > 0.5 * step
+    if off.any():
+        first = int(np.argmax(off)) + 1
+        warnings.warn(LoopDataWarning(
+            f"`t` in {where} is not evenly spaced: {int(off.sum())} of {steps.shape[0]} time steps differ from "
+            f"the median {step:g} s by more than half of it (from {float(steps.min()):g} to "
+            f"{float(steps.max()):g} s; the first at sample {first}); the samples are taken as equally spaced"
+        ), stacklevel=4)
     return step
 
 
@@ -336,6 +348,11 @@ def read_loop(
     mismatched lengths, NaN/inf, empty record, non-increasing `t`. A constant OP or PV
     is *not* rejected here; the estimators check that with
     [`jaxstiction.check_loop`][].
+
+    **Warns:** [`jaxstiction.LoopDataWarning`][] when the steps of `t` are uneven
+    (a gap, a repeated or reversed stamp: a step off the median by more than half of
+    it) and `ts` is not given: the samples are taken as equally spaced at the median
+    step.
     """
     file_ts: object = None
     if isinstance(source, (str, os.PathLike)):

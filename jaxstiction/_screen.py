@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -227,13 +228,15 @@ def _error(name, file, message, samples=None, ts=None) -> dict:
 
 def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings()):
     """Read and check every loop under `paths` (files and folders; a `.mat` file may
-    hold several loops). Returns `(items, errors)`: `(name, file, op, pv, ts)` tuples
-    ready to fit, and error entries (one line each) for the loops that cannot be."""
+    hold several loops). Returns `(items, errors, warned)`: `(name, file, op, pv, ts)`
+    tuples ready to fit, error entries (one line each) for the loops that cannot be,
+    and the [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name."""
+    from ._checks import LoopDataWarning
     from ._read import find_loop_files, loop_name, read_loop
     from ._read_mat import list_mat_loops
     from ._report import checked
 
-    items, errors = [], []
+    items, errors, warned = [], [], {}
     for path in find_loop_files(paths):
         names: list[str | None] = [None]
         if path.suffix.lower() == ".mat":
@@ -245,12 +248,17 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
         for sub in names:
             name = loop_name(path) if not sub else f"{path.stem}:{sub}"
             try:
-                loop = read_loop(path, ts=ts, name=sub)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", LoopDataWarning)
+                    loop = read_loop(path, ts=ts, name=sub)
                 op, pv = checked(np.asarray(loop.op), np.asarray(loop.pv), name, settings.estimate)
                 items.append((name, str(path), op, pv, float(loop.ts)))
+                said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
+                if said:
+                    warned[name] = "; ".join(said)
             except Exception as e:  # noqa: BLE001
                 errors.append(_error(name, str(path), _message(e)))
-    return items, errors
+    return items, errors, warned
 
 
 def _message(e: BaseException) -> str:
@@ -402,7 +410,7 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
 
     **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
     """
-    items, errors = read_items(paths, ts=ts, settings=settings)
+    items, errors, warned = read_items(paths, ts=ts, settings=settings)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -413,6 +421,9 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     finally:
         if bar is not None:
             bar.close()
+    for r in results:  # what the reader warned of goes first in the loop's note
+        if r["name"] in warned:
+            r["note"] = "; ".join(n for n in (warned[r["name"]], r.get("note", "")) if n)
     return ScreenReport(loops=rank(errors + results))
 
 

@@ -59,6 +59,21 @@ def test_too_short(tmp_path):
     _assert_one_line_error(run("fit", str(_csv(tmp_path / "x.csv", op, pv))), "at least")
 
 
+def test_uneven_time_column_is_a_one_line_warning(tmp_path):
+    """The reader's warning reaches stderr as one `warning: ...` line (here before the
+    record is rejected as too short, so that nothing is fitted)."""
+    op, pv = _good(40)
+    t = np.arange(40.0)
+    t[25:] += 3.0
+    rows = ["t,OP,PV"] + [f"{a},{b},{c}" for a, b, c in zip(t, op, pv)]
+    (tmp_path / "gap.csv").write_text("\n".join(rows) + "\n")
+    res = run("fit", str(tmp_path / "gap.csv"), "--json")
+    _assert_one_line_error(res, "at least")
+    (warning,) = [ln for ln in res.stderr.splitlines() if ln.startswith("warning: ")]
+    assert "`t` in" in warning and "gap.csv" in warning and "not evenly spaced" in warning
+    assert "Warning" not in res.stderr  # not Python's multi-line warning format
+
+
 def test_unreadable_and_missing_file(tmp_path):
     f = tmp_path / "junk.csv"
     f.write_bytes(bytes(range(256)) * 4)

@@ -1,6 +1,7 @@
 """Tests for loop data input (`_read`, `_read_mat`, `_checks`) and the `Loop` record
 (`_loop`); the nominal-model file is tested in `test_nominal.py`."""
 
+import warnings
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -111,6 +112,34 @@ def test_ts_precedence(tmp_path):
     assert float(read_loop({"OP": OP, "PV": PV}).ts) == 1.0  # default
     # t recorded as decimals: the step is rounded to 12 significant digits
     assert float(read_loop({"OP": OP, "PV": PV, "t": np.arange(N) * 0.2}).ts) == 0.2
+
+
+def test_uneven_t_warns_and_takes_the_median_step(tmp_path):
+    """A gap, a repeated or a reversed stamp in `t`: one `LoopDataWarning` (one line,
+    naming the file, the count and the first uneven step), the samples taken as
+    equally spaced at the median step. Jitter within half a step, or an explicit
+    `ts`, says nothing."""
+    t = np.arange(N) * 2.0
+    gap = t.copy()
+    gap[20:] += 6.0  # three samples missing before sample 20
+    p = write_csv(tmp_path / "gap.csv", ["t", "OP", "PV"], [gap, OP, PV])
+    with pytest.warns(js.LoopDataWarning) as caught:
+        d = read_loop(p)
+    assert float(d.ts) == 2.0 and d.length == N
+    (w,) = caught
+    msg = str(w.message)
+    assert "\n" not in msg and "'" + str(p) + "'" in msg and "not evenly spaced" in msg
+    assert "1 of 49 time steps" in msg and "from 2 to 8 s" in msg and "sample 20" in msg
+    assert w.filename == __file__  # points at the caller of read_loop
+    repeated = t.copy()
+    repeated[10] = repeated[9]
+    with pytest.warns(js.LoopDataWarning, match="2 of 49 time steps"):  # 0 s, then 4 s
+        read_loop({"OP": OP, "PV": PV, "t": repeated})
+    jitter = t + np.random.default_rng(1).uniform(-0.45, 0.45, N)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert float(read_loop({"OP": OP, "PV": PV, "t": jitter}).ts) == pytest.approx(2.0, abs=0.3)
+        assert float(read_loop(p, ts=2.0).ts) == 2.0
 
 
 # ---------------------------------------------------------------- DataFrame / dict

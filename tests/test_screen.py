@@ -91,8 +91,13 @@ def test_residual_line_finds_a_sinusoid():
 def fleet(tmp_path_factory):
     folder = tmp_path_factory.mktemp("fleet")
     good = [_loop(s, n) for s, n in ((11, 700), (12, 760), (13, 780))]
-    for i, lp in enumerate(good):
+    for i, lp in enumerate(good[:2]):
         _csv(folder / f"good{i}.csv", np.asarray(lp.op), np.asarray(lp.pv))
+    # the third with a time column that has a gap: fitted all the same, with a note
+    t = np.arange(780.0)
+    t[500:] += 4.0
+    rows = ["t,OP,PV"] + [f"{a},{b},{c}" for a, b, c in zip(t, np.asarray(good[2].op), np.asarray(good[2].pv))]
+    (folder / "good2.csv").write_text("\n".join(rows) + "\n")
     bad = _corrupt(folder, good[0])
     return folder, good, bad
 
@@ -120,6 +125,9 @@ def test_corrupt_files_cost_only_their_own_results(fleet, screened):
     assert "constant" in status["constant_op"] and "constant" in status["constant_pv"]
     assert "at least" in status["too_short"]
     assert "PV" in status["no_pv"]
+    # the reader's warning leads the note of a loop it was fitted for
+    note = {r["name"]: r.get("note") for r in rep.loops}["good2"]
+    assert note.startswith("`t` in") and "not evenly spaced" in note and "sample 500" in note
     # ranking: fitted loops first, errors last
     oks = [r["status"] == "ok" for r in rep.loops]
     assert oks == sorted(oks, reverse=True)
