@@ -252,7 +252,7 @@ def main():
                                                    "evidence_prediction_estimation", "slip_evidence", "slip_identified",
                                                    "slip_evidence_estimation", "band_fraction", "S", "J",
                                                    "oscillation", "oscillation_kano", "period_samples", "fitness",
-                                                   "fitness_kano", "fitness_linear", "fitness_deadband")}})
+                                                   "fitness_kano", "fitness_linear", "fitness_deadband", "delay")}})
     rows.sort(key=lambda r: (kinds.index(r["kind"]), r["seed"]))
     tp, pos, fa, neg = confusion(rows)
     tn = neg - fa
