@@ -234,6 +234,18 @@ def _version() -> str:
     return f"jaxstiction {__version__} (jax {_of('jax')}, jaxlib {_of('jaxlib')})"
 
 
+class _VersionAction(argparse.Action):
+    """`--version`, looked up only when asked for (reading the installed metadata
+    costs every command ~40 ms at start-up otherwise)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(_version())
+        parser.exit()
+
+
 def build_parser():
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -242,7 +254,7 @@ def build_parser():
         prog="jaxstiction",
         description="Identify sticky control valves and the process behind them from OP/PV data.",
     )
-    p.add_argument("--version", action="version", version=_version(),
+    p.add_argument("--version", action=_VersionAction,
                    help="print the versions of jaxstiction, JAX and jaxlib, and exit")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", parents=[common], help="run the paper_sim scenario end to end")
