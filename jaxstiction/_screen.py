@@ -256,6 +256,9 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
                 said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
                 if said:
                     warned[name] = "; ".join(said)
+                for w in caught:  # any other warning goes on as it would have
+                    if not issubclass(w.category, LoopDataWarning):
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
             except Exception as e:  # noqa: BLE001
                 errors.append(_error(name, str(path), _message(e)))
     return items, errors, warned
