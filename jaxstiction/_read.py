@@ -3,9 +3,10 @@
 - [`jaxstiction.read_loop`][] reads one loop into a [`jaxstiction.Loop`][] (OP, PV,
   mask and sampling time). Accepted sources:
     - a delimited text file (`.csv`, `.tsv`, `.txt`): a header row naming the
-      columns, then one row per sample; `OP` and `PV` are required, `t` (or `time`,
-      seconds) and `SP` are optional, other columns are ignored. Comma, semicolon
-      and tab separators are recognised from the header line.
+      columns, then one row per sample; `OP` and `PV` are required, `t` (or `time`
+      or `timestamp`: seconds, or ISO 8601 date-times) and `SP` are optional, other
+      columns are ignored. Comma, semicolon and tab separators are recognised from
+      the header line; beside semicolons and tabs, decimal commas are read too.
     - a MATLAB `.mat` file holding one or more structs with fields `OP`, `PV` and
       `Ts` (see `jaxstiction._read_mat`).
     - a pandas DataFrame or a mapping with such columns or keys.
@@ -20,6 +21,7 @@ as is) and SciPy only when a `.mat` file is read. Every failure is a
 from __future__ import annotations
 
 import csv
+import datetime
 import io
 import math
 import os
@@ -64,11 +66,12 @@ def _found(keys: Iterable[object], limit: int = 12) -> str:
 def _match_columns(keys: Iterable[object], where: str) -> dict[str, object]:
     """Map the canonical names `op, pv, sp, t` to the original keys present in `keys`.
 
-    Matching is case-insensitive after stripping spaces; `time` is accepted for `t`.
+    Matching is case-insensitive after stripping spaces; `time` and `timestamp` are
+    accepted for `t`.
     Raises when `OP` or `PV` is missing or a name matches twice.
     """
     keys = list(keys)
-    aliases = {"op": "op", "pv": "pv", "sp": "sp", "t": "t", "time": "t"}
+    aliases = {"op": "op", "pv": "pv", "sp": "sp", "t": "t", "time": "t", "timestamp": "t"}
     out: dict[str, object] = {}
     for key in keys:
         canon = aliases.get(_norm(key))
@@ -177,11 +180,64 @@ def _finish(
 # ----------------------------------------------------------------------------- CSV
 
 
-def _parse_number(cell: str) -> float:
+def _parse_number(cell: str, decimal_comma: bool = False) -> float:
     cell = cell.strip()
     if cell == "":
         return math.nan
-    return float(cell)
+    try:
+        return float(cell)
+    except ValueError:
+        # a decimal comma (European exports, separated by semicolons or tabs)
+        if decimal_comma and cell.count(",") == 1 and "." not in cell:
+            return float(cell.replace(",", "."))
+        raise
+
+
+def _parse_times(cells: list[tuple[int, str]], column: str, where: str, decimal_comma: bool) -> np.ndarray:
+    """The `t` column in seconds: numbers as they are, or ISO 8601 date-times
+    (`2024-03-01 12:00:00`, `2024-03-01T12:00:00.5+01:00`, ...) as seconds after the
+    first. `cells`: (line number, text) per sample."""
+    first = next((text.strip() for _, text in cells if text.strip()), "")
+    try:
+        _parse_number(first, decimal_comma)
+        numeric = True
+    except ValueError:
+        numeric = False
+    out = np.empty(len(cells))
+    if numeric:
+        for i, (line, text) in enumerate(cells):
+            try:
+                out[i] = _parse_number(text, decimal_comma)
+            except ValueError:
+                raise LoopDataError(
+                    f"non-numeric value {_short(text)!r} in column `{column}` at line {line} of {where}"
+                ) from None
+        return out
+    stamps = []
+    for line, text in cells:
+        try:
+            stamps.append(datetime.datetime.fromisoformat(text.strip()))
+        except ValueError:
+            raise LoopDataError(
+                f"`{column}` value {_short(text)!r} at line {line} of {where} is neither a number "
+                "(seconds) nor an ISO 8601 date-time"
+            ) from None
+    aware = {s.tzinfo is not None for s in stamps}
+    if len(aware) > 1:
+        raise LoopDataError(f"`{column}` in {where} mixes date-times with and without a time zone")
+    return np.array([(s - stamps[0]).total_seconds() for s in stamps])
+
+
+def _datetime_seconds(values: object) -> object:
+    """NumPy/pandas date-times or durations as seconds (after the first date-time);
+    anything else unchanged."""
+    kind = getattr(getattr(values, "dtype", None), "kind", "")
+    if kind not in ("M", "m"):
+        return values
+    arr = np.asarray(values)
+    if arr.size and kind == "M":
+        arr = arr - arr.reshape(-1)[0]
+    return arr / np.timedelta64(1, "s")
 
 
 def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
@@ -211,7 +267,9 @@ def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
         assert header is not None
         columns = _match_columns(header, where)
         index = {canon: header.index(key) for canon, key in columns.items()}  # type: ignore[arg-type]
-        data: dict[str, list[float]] = {canon: [] for canon in index}
+        decimal_comma = delimiter != ","
+        data: dict[str, list[float]] = {canon: [] for canon in index if canon != "t"}
+        times: list[tuple[int, str]] = []
         need = max(index.values()) + 1
         for row in reader:
             if not any(cell.strip() for cell in row):
@@ -221,9 +279,12 @@ def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
                     f"line {reader.line_num} of {where} has {len(row)} fields, "
                     f"expected {len(header)} as in the header"
                 )
-            for canon, j in index.items():
+            if "t" in index:
+                times.append((reader.line_num, row[index["t"]]))
+            for canon in data:
+                j = index[canon]
                 try:
-                    data[canon].append(_parse_number(row[j]))
+                    data[canon].append(_parse_number(row[j], decimal_comma))
                 except ValueError:
                     column = _COLUMN[canon]
                     raise LoopDataError(
@@ -237,6 +298,8 @@ def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, values in data.items():
         out[canon] = np.asarray(values, dtype=np.float64)
+    if "t" in index:
+        out["t"] = _parse_times(times, header[index["t"]].strip(), where, decimal_comma)
     return out
 
 
@@ -282,7 +345,12 @@ def _read_frame(df: Any, where: str) -> dict[str, np.ndarray | None]:
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, key in columns.items():
         column = _COLUMN[canon]
-        out[canon] = _frame_column(df, key, column, where)
+        kind = getattr(getattr(df[key], "dtype", None), "kind", "")
+        if canon == "t" and kind in ("M", "m") and getattr(df[key], "ndim", 1) == 1 and len(df) > 0:
+            series = df[key] - df[key].iloc[0] if kind == "M" else df[key]  # time zones included
+            out[canon] = np.asarray(series.dt.total_seconds().to_numpy(dtype=np.float64, na_value=np.nan))
+        else:
+            out[canon] = _frame_column(df, key, column, where)
     if out["t"] is None:
         out["t"] = _frame_time(df)
     return out
@@ -295,7 +363,8 @@ def _read_mapping(
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, key in columns.items():
         column = _COLUMN[canon]
-        out[canon] = _as_column(m[key], column, f"{where}: ")
+        value = _datetime_seconds(m[key]) if canon == "t" else m[key]
+        out[canon] = _as_column(value, column, f"{where}: ")
     file_ts = None
     for key, value in m.items():
         if _norm(key) == "ts":
@@ -319,18 +388,21 @@ def read_loop(
 
     - `source`: one of
         - a path (`str` or `Path`) to a **CSV** file (`.csv`, also `.tsv`/`.txt`)
-          with a header: columns `OP` and `PV` required, `t` (seconds; `time` is
-          accepted too) and `SP` optional, other columns ignored; names match
-          case-insensitively after stripping spaces; comma, semicolon or tab
-          separated. Empty cells read as NaN (and are then reported).
+          with a header: columns `OP` and `PV` required, `t` (seconds, or ISO 8601
+          date-times such as `2024-03-01 12:00:00`, read as seconds after the first;
+          `time` and `timestamp` are accepted as its name) and `SP` optional, other
+          columns ignored; names match case-insensitively after stripping spaces;
+          comma, semicolon or tab separated (decimal commas are read beside
+          semicolons and tabs). Empty cells read as NaN (and are then reported).
         - a path to a MATLAB **`.mat`** file in the International Stiction Database
           layout: a struct with fields `OP`, `PV`, `Ts` (and optionally `SP`),
           possibly nested in other structs, e.g. `cdata.chemicals.loop23`; or
           top-level variables `OP`, `PV`, `Ts`. When the file holds several loops,
           `name` picks one: the dotted path or its last part (see
           [`jaxstiction.list_mat_loops`][]). Needs SciPy.
-        - a pandas **DataFrame** with such columns (a DatetimeIndex or
-          TimedeltaIndex counts as `t` when there is no `t` column).
+        - a pandas **DataFrame** with such columns (`t` may hold date-times or
+          durations; a DatetimeIndex or TimedeltaIndex counts as `t` when there is
+          no `t` column).
         - a **mapping** (e.g. `dict`) with keys `OP`, `PV`, optionally `t`, `SP`, `Ts`.
     - `ts`: sampling time in seconds. Precedence: this argument; else the median
       step of `t`; else the file's `Ts` (`.mat`, mapping); else 1.0.

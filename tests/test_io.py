@@ -92,6 +92,54 @@ def test_csv_with_sp_odd_header_case_and_extra_columns(tmp_path):
     assert float(d.ts) == 10.0
 
 
+def test_csv_decimal_comma_with_semicolons_or_tabs(tmp_path):
+    """European exports: decimal commas beside semicolon or tab separators read as
+    numbers; with comma separators a comma is never a decimal mark."""
+    for sep, name in ((";", "semi.csv"), ("\t", "tab.tsv")):
+        p = write_csv(tmp_path / name, ["t", "OP", "PV"], [np.arange(N) * 0.5, OP, PV], sep=sep)
+        p.write_text(p.read_text().replace(".", ","))
+        d = read_loop(p)
+        np.testing.assert_allclose(d.op, OP, rtol=1e-9)
+        np.testing.assert_allclose(d.pv, PV, rtol=1e-9)
+        assert float(d.ts) == 0.5
+    p = tmp_path / "both.csv"
+    p.write_text("OP;PV\n1.5;2,5\n1,000.5;3\n")  # a thousands separator is not guessed at
+    raises_one_line(r"non-numeric value '1,000.5' in column `OP` at line 3", read_loop, p)
+
+
+def test_csv_iso_timestamps(tmp_path):
+    """A `t`/`time`/`timestamp` column of ISO 8601 date-times gives the sampling time
+    (time zones honoured); a stamp that is neither a number nor a date-time, or a mix
+    of zone-aware and naive stamps, is a one-line error naming the line."""
+    stamps = [f"2024-03-01 23:59:{50 + 2 * i:02d}" if 50 + 2 * i < 60 else
+              f"2024-03-02 00:{(2 * i - 10) // 60:02d}:{(2 * i - 10) % 60:02d}" for i in range(N)]
+    p = write_csv(tmp_path / "stamps.csv", ["Timestamp", "OP", "PV"], [stamps, OP, PV], fmt="{}")
+    d = read_loop(p)
+    assert float(d.ts) == 2.0
+    np.testing.assert_allclose(d.op, OP)
+    # ISO stamps with offsets: the same instants written in two zones
+    zoned = ["2024-03-01T12:00:00Z", "2024-03-01T13:00:05+01:00", "2024-03-01T12:00:10+00:00"]
+    p = write_csv(tmp_path / "zoned.csv", ["time", "OP", "PV"], [zoned, OP[:3], PV[:3]], fmt="{}")
+    assert float(read_loop(p).ts) == 5.0
+    bad = list(stamps)
+    bad[4] = "yesterday"
+    p = write_csv(tmp_path / "bad.csv", ["t", "OP", "PV"], [bad, OP, PV], fmt="{}")
+    raises_one_line(r"`t` value 'yesterday' at line 6 of .*bad.csv.*ISO 8601", read_loop, p)
+    p = write_csv(tmp_path / "mixed.csv", ["t", "OP", "PV"], [[zoned[0], "2024-03-01T12:00:05"], OP[:2], PV[:2]],
+                  fmt="{}")
+    raises_one_line(r"mixes date-times with and without a time zone", read_loop, p)
+
+
+def test_datetime_time_columns_in_frames_and_mappings():
+    pd = pytest.importorskip("pandas")
+    stamps = pd.date_range("2024-03-31 01:59:00", periods=N, freq="3s", tz="Europe/Berlin")  # across a DST change
+    assert float(read_loop(pd.DataFrame({"time": stamps, "OP": OP, "PV": PV})).ts) == 3.0
+    spans = pd.to_timedelta(np.arange(N) * 4.0, unit="s")
+    assert float(read_loop(pd.DataFrame({"t": spans, "OP": OP, "PV": PV})).ts) == 4.0
+    t = np.datetime64("2024-01-01T00:00") + np.arange(N) * np.timedelta64(250, "ms")
+    assert float(read_loop({"t": t, "OP": OP, "PV": PV}).ts) == 0.25
+
+
 def test_csv_semicolon_bom_and_blank_lines(tmp_path):
     p = tmp_path / "semi.csv"
     body = "OP;PV\n\n1;2\n2;3\n\n3;5\n"
