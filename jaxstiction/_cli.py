@@ -258,12 +258,12 @@ def build_parser():
                    help="print the versions of jaxstiction, JAX and jaxlib, and exit")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", parents=[common], help="run the paper_sim scenario end to end")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=int, default=0, help="random seed of the simulated records (default 0)")
     d.set_defaults(func=cmd_demo)
     f = sub.add_parser("fit", parents=[common], help="fit one loop (CSV with OP, PV; or .mat)")
-    f.add_argument("file")
+    f.add_argument("file", help="the loop's record: CSV with OP and PV columns (t, SP optional), or MATLAB .mat")
     f.add_argument("--validate", type=float, default=1 / 3, metavar="FRACTION",
-                   help="hold out the last FRACTION for validation (0: validate on the estimation data)")
+                   help="hold out the last FRACTION for validation (default 1/3; 0: validate on the estimation data)")
     f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
     f.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
     f.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
@@ -271,7 +271,7 @@ def build_parser():
     f.set_defaults(func=cmd_fit)
     s = sub.add_parser("screen", parents=[common],
                        help="screen loops (files, folders) for sticky valves, ranked; name other causes")
-    s.add_argument("paths", nargs="+")
+    s.add_argument("paths", nargs="+", help="CSV or .mat files, or folders holding them (their top level)")
     s.add_argument("--ts", type=float, default=None, help="sampling time (s) for files without a t column")
     s.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="run the chunks on a Dask cluster (e.g. tcp://host:8786); needs jaxstiction[dask]")
@@ -284,11 +284,13 @@ def build_parser():
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
-    g.add_argument("file")
+    g.add_argument("file", help="the loop's record: CSV with OP and PV columns (t, SP optional), or MATLAB .mat")
     g.add_argument("--model", metavar="NOMINAL.json", default=None,
                    help="nominal model (JSON); without it a linear-valve model is fitted first")
-    g.add_argument("--holdout", type=float, default=1 / 3, metavar="FRACTION", help="held-out fraction at the end")
-    g.add_argument("--bootstrap", type=int, default=39, metavar="N", help="parametric bootstrap replicates")
+    g.add_argument("--holdout", type=float, default=1 / 3, metavar="FRACTION",
+                   help="held-out fraction at the end (default 1/3)")
+    g.add_argument("--bootstrap", type=int, default=39, metavar="N",
+                   help="parametric bootstrap replicates (default 39)")
     g.add_argument("--ts", type=float, default=None,
                    help="sampling time (s) (default: the nominal model's, else the file's t column)")
     g.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
