@@ -15,6 +15,24 @@ def json_number(v, nd: int = 3):
     return round(v, nd) if math.isfinite(v) else None
 
 
+def release_freed_memory() -> bool:
+    """Hand the memory that this process has freed back to the operating system
+    (glibc's `malloc_trim`); returns whether it could. A no-op where there is no glibc.
+
+    XLA's compiler frees what it used when it is done, but glibc keeps those pages
+    in the process, and the compiled program's buffers are then mapped on top of
+    them, so a long record's peak is the compilation's memory plus the run's:
+    `jaxstiction fit PAP5.csv` (18000 samples, compiling) peaked at 1.88 GB, and at
+    1.46 GB with this call between compiling and running."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
 def release_programs_near_map_limit(share: float = 0.5) -> bool:
     """Clear JAX's in-memory compiled programs (`jax.clear_caches()`) when this
     process holds more than `share` of the kernel's memory-map limit; returns whether

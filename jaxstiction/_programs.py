@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from ._criteria import simulate_scored
 from ._estimate import _estimate, estimate, estimation_parts, LoopFit, Settings
 from ._loop import Loop
+from ._misc import release_freed_memory
 
 
 _where: pathlib.Path | None = None
@@ -151,5 +152,9 @@ def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFi
         except Exception:  # e.g. a read-only cache or no `flatbuffers`: not saved
             pass
     exported, skeleton = entry
-    _loaded[key] = (jax.jit(exported.call), skeleton)
+    # compiled apart from the run, so that what the compiler freed can be handed
+    # back before the run's buffers are allocated (see `release_freed_memory`)
+    compiled = jax.jit(exported.call).lower(loop.op, loop.pv, loop.mask, loop.ts).compile()
+    release_freed_memory()
+    _loaded[key] = (compiled, skeleton)
     return _call(*_loaded[key], loop)
