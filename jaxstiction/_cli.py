@@ -183,6 +183,10 @@ def _diagnosis_text(name, d) -> str:
         lines.append(f"  {f.effect}: {params}; held-out fitness {f.heldout_before['fitness']:.2f} -> "
                      f"{f.heldout_after['fitness']:.2f} %"
                      + (f" ({f.evidence['note']})" if "note" in f.evidence else ""))
+    alternatives = [f.effect for f in d.findings if "alternative_to" in f.evidence]
+    if alternatives:
+        lines.append(f"  alternatives (pass on their own, not fitted with {d.verdict}, not claimed): "
+                     + ", ".join(alternatives))
     L = d.located
     periods = [x["period_samples"] for x in L["spectrum"]["lines"]]
     lines.append(f"  located: residual white {L['whiteness']['white']}, OP-residual cross-correlation passes "

@@ -30,8 +30,12 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
    fitness by more than the run-to-run spread (bootstrap); output blocks must also
    leave a residual that passes the input cross-correlation test. Accepted blocks
    are ranked by their penalised likelihood ratio; stiction against deadband by the
-   significance of J. Effects that no deterministic block can predict (quantisation;
-   drift) are named from their own evidence and reported with no simulation gain.
+   significance of J. The first names the verdict; an external oscillation is then
+   tested as a second block on top of it. Only what the diagnosed model holds stays
+   `accepted`: the other blocks that passed on their own are alternative
+   explanations of the same mismatch (never fitted together with the verdict's),
+   marked `alternative_to` and not accepted. Effects that no deterministic block
+   can predict (quantisation; drift) are named from their own evidence and reported with no simulation gain.
 """
 
 from __future__ import annotations
@@ -218,6 +222,8 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         runner = ordered[1].effect if len(ordered) > 1 else None
     if verdict in INPUT_FAMILIES:  # two effects: does an external oscillation remain?
         findings, model, runner = _second_oscillation(b, g, s, proof, settings, ordered[0], findings, runner, say)
+    if ordered:
+        findings = _alternatives(findings, ordered[0])
     quant = _quantisation(b.pv, float(np.std((b.pv - s.base_sim)[:b.n_est])))
     if quant is not None:
         findings.append(Finding("quantization", quant, {
@@ -225,8 +231,8 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             proof.before, proof.before, True))
         if verdict == "none":
             verdict = "quantization"
-    order = {id(f): i for i, f in enumerate(ordered)}
-    findings.sort(key=lambda f: (not f.accepted, order.get(id(f), len(order)), -f.evidence.get("statistic", -1e9)
+    order = {f.effect: i for i, f in enumerate(ordered)}  # the alternatives follow in their rank
+    findings.sort(key=lambda f: (not f.accepted, order.get(f.effect, len(order)), -f.evidence.get("statistic", -1e9)
                                  if f.evidence.get("statistic") is not None else 0.0))
     sim_after = np.asarray(_jit_scored(model, b.opj, b.pvj, b.whole)[0])
     located = {**b.located, "whiteness_after": whiteness(ar_whiten((b.pv - sim_after)[:b.n_est], 2)[0])}
@@ -361,6 +367,22 @@ def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):
         acc.pop(drop)
         findings = [_revised(f, False, note=note) if f.effect == drop else f for f in findings]
     return findings, _ranked(list(acc.values()))
+
+
+def _alternatives(findings: list[Finding], first: Finding) -> list[Finding]:
+    """Only what the diagnosed model holds stays accepted: the verdict's block and
+    a second block proven on top of it. Another block that passed on its own (an
+    actuator lag or a travel limit beside stiction: each imitates part of it) is an
+    alternative explanation of the same mismatch; it was never fitted together with
+    the verdict's, so it is not claimed."""
+    def kept(f):
+        return f is first or not f.accepted or "with" in f.parameters
+
+    note = (f"passes on its own, but as an alternative to {first.effect}, which explains the mismatch better; "
+            "the two were not fitted together, so it is not claimed")
+    return [f if kept(f) else _revised(f, False, alternative_to=first.effect,
+                                       note=f"{f.evidence['note']}; {note}" if "note" in f.evidence else note)
+            for f in findings]
 
 
 def _second_oscillation(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof, settings: DiagnoseSettings,
