@@ -150,7 +150,7 @@ def cmd_screen(args):
     t0 = time.time()
     settings = screen_settings(args)
     rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
-                 pictures=bool(args.out))
+                 pictures=bool(args.out), diagnose=args.diagnose)
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -285,6 +285,10 @@ def build_parser():
     s.add_argument("--full-search", action="store_true",
                    help="the full estimator's Kano search instead of the screen's lighter one: ~15 times slower "
                         "per loop, better on integrating (level) loops")
+    s.add_argument("--diagnose", action="store_true",
+                   help="name the cause of each loop not called sticky by the full diagnosis (as `diagnose` "
+                        "without a nominal model: deadband, dead_time, saturation, external_oscillation, drift, "
+                        "quantization, ...) instead of the screen's residual-line test; ~10-80 s per such loop")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")

@@ -30,7 +30,7 @@ import numpy as np
 from ._checks import check_counts
 from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
-from ._misc import json_number as _r
+from ._misc import json_number as _r, release_freed_memory
 from ._physical import PhysicalSettings
 from ._verdict import CAUSES, usable, verdict, VerdictSettings
 
@@ -388,9 +388,62 @@ class ScreenReport:
         return {"loops": loops, "summary": self.counts}
 
 
+def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: Any = None, *,
+                    progress: Callable[[int], Any] | None = None) -> list[dict]:
+    """The `cause` of every fitted loop that is not called sticky, from the full
+    mismatch diagnosis ([`jaxstiction.diagnose`][], no nominal model) instead of the
+    screen's own residual-line test: its whole vocabulary (`deadband`, `dead_time`,
+    `saturation`, `external_oscillation`, `drift`, `quantization`, `none`, ...), at
+    ~10-80 s per loop. Each such entry gains `diagnosis` (`verdict`, `runner_up`,
+    `accepted`). A diagnosis that names stiction where the screen's held-out test did
+    not leaves the screen's cause and says so in the `note`; a diagnosis that fails
+    leaves it too, with the one-line error in the `note`.
+
+    `results`: entries of `screen_loops`; `items`: the `(name, file, op, pv, ts)`
+    tuples they came from; `settings`: `DiagnoseSettings`; `progress`: called with 1
+    after each diagnosis. Returns new entries, in the same order."""
+    from ._diagnose import diagnose, DiagnoseSettings
+
+    settings = DiagnoseSettings() if settings is None else settings
+    by_name = {it[0]: it for it in items}
+    out = list(results)
+    todo = [i for i, r in enumerate(out) if r["status"] == "ok" and not r["stiction_detected"] and r["name"] in by_name]
+    # by record length, and the compiled programs of one length dropped before the
+    # next: a diagnosis compiles hundreds of MB of programs per length (14 ISDB
+    # loops: 3.9 GB kept, 7 lengths)
+    todo.sort(key=lambda i: by_name[out[i]["name"]][2].shape[0])
+    length = None
+    for i in todo:
+        r = dict(out[i])
+        _, _, op, pv, ts = by_name[r["name"]]
+        if length is not None and op.shape[0] != length:
+            jax.clear_caches()
+            release_freed_memory()
+        length = op.shape[0]
+        said = None
+        try:
+            d = diagnose(make_loop(op, pv, ts), None, settings)
+        except Exception as e:  # noqa: BLE001 - a failed diagnosis costs only this loop's cause
+            said = f"diagnose failed, cause from the screen: {_one_line(e)}"
+        else:
+            r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up,
+                              "accepted": [f.effect for f in d.findings if f.accepted]}
+            if d.verdict == "stiction":
+                said = ("diagnose names stiction, which the screen's held-out test did not confirm; "
+                        "cause from the screen")
+            else:
+                r["cause"] = d.verdict
+        if said:
+            r["note"] = "; ".join(n for n in (r.get("note", ""), said) if n)
+        out[i] = r
+        if progress is not None:
+            progress(1)
+    return out
+
+
 def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
            ts: float | None = None, progress: bool = False, scheduler: Any = None,
-           pictures: bool = False) -> ScreenReport:
+           pictures: bool = False, diagnose: bool = False) -> ScreenReport:
     """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
     for sticky valves, and name the cause of the others.
 
@@ -408,6 +461,8 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     - `scheduler`: a Dask scheduler address (or a `dask.distributed.Client`): each
       chunk becomes one task on the cluster.
     - `pictures`: keep the arrays each loop's picture needs (`figure`).
+    - `diagnose`: name the cause of the loops not called sticky by the full
+      diagnosis (`diagnose_causes`; in this process, also with a `scheduler`).
 
     **Returns:** a [`jaxstiction.ScreenReport`][].
 
@@ -424,6 +479,18 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     finally:
         if bar is not None:
             bar.close()
+    if diagnose:
+        todo = sum(r["status"] == "ok" and not r["stiction_detected"] for r in results)
+        bar = None
+        if progress and todo:
+            from tqdm import tqdm
+
+            bar = tqdm(total=todo, unit="loop", desc="diagnose", file=__import__("sys").stderr)
+        try:
+            results = diagnose_causes(results, items, progress=bar.update if bar else None)
+        finally:
+            if bar is not None:
+                bar.close()
     for r in results:  # what the reader warned of goes first in the loop's note
         if r["name"] in warned:
             r["note"] = "; ".join(n for n in (warned[r["name"]], r.get("note", "")) if n)

@@ -71,6 +71,49 @@ def test_rank_by_the_larger_heldout_gain():
     assert [r["name"] for r in rank(loops)] == ["pred", "sim", "weak", "healthy", "err"]
 
 
+def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch):
+    """`screen --diagnose`: every fitted loop not called sticky gets its cause from
+    `diagnose` (no nominal model) on its own record, with a `diagnosis` summary;
+    sticky loops and errors are left alone; a diagnosis naming stiction against the
+    screen's test, or failing, leaves the screen's cause and says so in the note."""
+    from jaxstiction import _diagnose
+    from jaxstiction._screen import diagnose_causes
+
+    n = 300
+    rng = np.random.default_rng(0)
+    items = [(name, None, rng.normal(50, 1, n), rng.normal(0, 1, n), 2.0) for name in "abcde"]
+    base = {"status": "ok", "stiction_detected": False, "cause": "none"}
+    results = [{**base, "name": "a"}, {**base, "name": "b", "stiction_detected": True, "cause": "stiction"},
+               {**base, "name": "c", "cause": "external_oscillation", "note": "earlier"},
+               {**base, "name": "d"}, {"name": "e", "status": "too short", "stiction_detected": False}]
+    seen = []
+
+    class Found:
+        def __init__(self, effect, accepted):
+            self.effect, self.accepted = effect, accepted
+
+    def fake(loop, nominal, settings):
+        seen.append((int(loop.op.shape[0]), float(loop.ts), nominal))
+        verdict = {0: "deadband", 1: "stiction", 2: None}[len(seen) - 1]
+        if verdict is None:
+            raise ValueError("boom")
+        return type("D", (), {"verdict": verdict, "runner_up": "drift",
+                              "findings": (Found(verdict, True), Found("drift", False))})()
+
+    monkeypatch.setattr(_diagnose, "diagnose", fake)
+    ticks = []
+    out = diagnose_causes(results, items, progress=ticks.append)
+    assert seen == [(n, 2.0, None)] * 3 and ticks == [1, 1, 1]
+    a, b, c, d, e = out
+    assert a["cause"] == "deadband" and a["diagnosis"] == {"verdict": "deadband", "runner_up": "drift",
+                                                          "accepted": ["deadband"]}
+    assert b == results[1] and e == results[4]  # sticky and failed loops untouched
+    assert c["cause"] == "external_oscillation" and c["diagnosis"]["verdict"] == "stiction"
+    assert c["note"].startswith("earlier; diagnose names stiction")
+    assert d["cause"] == "none" and "diagnosis" not in d and "diagnose failed" in d["note"] and "boom" in d["note"]
+    assert results[0]["cause"] == "none"  # the entries passed in are not changed
+
+
 def test_residual_line_finds_a_sinusoid():
     rng = np.random.default_rng(0)
     t = np.arange(1500)
@@ -276,7 +319,7 @@ def test_cli_screen_all_corrupt(fleet, tmp_path):
     bad_only = tmp_path / "bad"
     bad_only.mkdir()
     n = _corrupt(bad_only, good[0])
-    res = run("screen", str(bad_only), "--json")
+    res = run("screen", str(bad_only), "--json", "--diagnose")  # nothing fitted: nothing to diagnose
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
     assert out["summary"] == {"loops": n, "ok": 0, "errors": n, "sticky": 0}
