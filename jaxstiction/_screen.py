@@ -450,7 +450,8 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     Each loop gets [`jaxstiction.estimate`][] (batched with the other loops of its
     length bucket) and [`jaxstiction.verdict`][]: `stiction_detected` when Kano's
     valve beats a linear valve on held-out data, `slip_identified` when its slip
-    jump is seen, and a `cause` (`stiction`, `external_oscillation`, `none`). A loop that cannot be read or fitted
+    jump is seen, and a `cause` (`stiction`, `external_oscillation`, `none`; with
+    `diagnose`, the diagnosis verdict of a loop not called sticky). A loop that cannot be read or fitted
     gets `status` with a one-line error; the others are unaffected.
 
     **Arguments:**
