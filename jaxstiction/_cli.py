@@ -150,7 +150,7 @@ def cmd_screen(args):
     t0 = time.time()
     settings = screen_settings(args)
     rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
-                 pictures=bool(args.out), diagnose=args.diagnose)
+                 pictures=bool(args.out), diagnose=args.diagnose, recursive=args.recursive)
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -275,7 +275,9 @@ def build_parser():
     f.set_defaults(func=cmd_fit)
     s = sub.add_parser("screen", parents=[common],
                        help="screen loops (files, folders) for sticky valves, ranked; name other causes")
-    s.add_argument("paths", nargs="+", help="CSV or .mat files, or folders holding them (their top level)")
+    s.add_argument("paths", nargs="+", help="CSV or .mat files, or folders holding them (their top level; "
+                                            "subfolders too with --recursive)")
+    s.add_argument("-r", "--recursive", action="store_true", help="also the loop files in subfolders")
     s.add_argument("--ts", type=float, default=None, help="sampling time (s) for files without a t column")
     s.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="run the chunks on a Dask cluster (e.g. tcp://host:8786); needs jaxstiction[dask]")

@@ -475,12 +475,15 @@ def loop_name(source: object) -> str:
 
 def find_loop_files(
     paths: str | os.PathLike | Iterable[str | os.PathLike],
+    *,
+    recursive: bool = False,
 ) -> list[Path]:
     """Expand files and folders into a list of loop files for batch screening.
 
     Files are kept as given (in the given order, duplicates dropped); a folder is
-    replaced by its `*.csv` and `*.mat` files (not recursive, case-insensitive
-    extension, hidden files skipped), sorted by name.
+    replaced by its `*.csv` and `*.mat` files (case-insensitive extension, hidden
+    files skipped), sorted by path; with `recursive`, also those of its subfolders
+    (hidden folders skipped).
 
     **Raises:** [`jaxstiction.LoopDataError`][] for a path that does not exist or a
     folder without any `.csv`/`.mat` file.
@@ -498,15 +501,16 @@ def find_loop_files(
     for item in paths:
         p = Path(item)
         if p.is_dir():
+            candidates = p.rglob("*") if recursive else p.iterdir()
             found = sorted(
                 (
                     c
-                    for c in p.iterdir()
+                    for c in candidates
                     if c.is_file()
-                    and not c.name.startswith(".")
+                    and not any(part.startswith(".") for part in c.relative_to(p).parts)
                     and c.suffix.lower() in (".csv", ".mat")
                 ),
-                key=lambda c: c.name,
+                key=lambda c: c.relative_to(p).parts,
             )
             if not found:
                 raise LoopDataError(

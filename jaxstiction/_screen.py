@@ -226,27 +226,46 @@ def _error(name, file, message, samples=None, ts=None) -> dict:
             "stiction_detected": False, "cause": None, "band_percent": None, "fitness": None}
 
 
-def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings()):
-    """Read and check every loop under `paths` (files and folders; a `.mat` file may
-    hold several loops). Returns `(items, errors, warned)`: `(name, file, op, pv, ts)`
-    tuples ready to fit, error entries (one line each) for the loops that cannot be,
-    and the [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name."""
+def _unique_name(name: str, path: Path, taken: set) -> str:
+    """`name`, or when another loop has it already, `folder/name` (then `name#k`):
+    every entry, note and diagnosis is keyed by name."""
+    for candidate in (name, f"{path.parent.name}/{name}"):
+        if candidate not in taken:
+            return candidate
+    k = 2
+    while f"{name}#{k}" in taken:
+        k += 1
+    return f"{name}#{k}"
+
+
+def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings(),
+               recursive: bool = False):
+    """Read and check every loop under `paths` (files and folders, their subfolders
+    too with `recursive`; a `.mat` file may hold several loops). Returns `(items,
+    errors, warned)`: `(name, file, op, pv, ts)` tuples ready to fit, error entries
+    (one line each) for the loops that cannot be, and the
+    [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name. Names
+    are unique: a name met again gets its folder in front (`unit2/FC101`)."""
     from ._checks import LoopDataWarning
     from ._read import find_loop_files, loop_name, read_loop
     from ._read_mat import list_mat_loops
     from ._report import checked
 
     items, errors, warned = [], [], {}
-    for path in find_loop_files(paths):
+    taken: set[str] = set()
+    for path in find_loop_files(paths, recursive=recursive):
         names: list[str | None] = [None]
         if path.suffix.lower() == ".mat":
             try:
                 names = list_mat_loops(path) or [None]
             except Exception as e:  # noqa: BLE001 - a bad file is that file's error
-                errors.append(_error(path.stem, str(path), _message(e)))
+                name = _unique_name(path.stem, path, taken)
+                taken.add(name)
+                errors.append(_error(name, str(path), _message(e)))
                 continue
         for sub in names:
-            name = loop_name(path) if not sub else f"{path.stem}:{sub}"
+            name = _unique_name(loop_name(path) if not sub else f"{path.stem}:{sub}", path, taken)
+            taken.add(name)
             try:
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", LoopDataWarning)
@@ -443,7 +462,7 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
 
 def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
            ts: float | None = None, progress: bool = False, scheduler: Any = None,
-           pictures: bool = False, diagnose: bool = False) -> ScreenReport:
+           pictures: bool = False, diagnose: bool = False, recursive: bool = False) -> ScreenReport:
     """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
     for sticky valves, and name the cause of the others.
 
@@ -462,6 +481,7 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     - `scheduler`: a Dask scheduler address (or a `dask.distributed.Client`): each
       chunk becomes one task on the cluster.
     - `pictures`: keep the arrays each loop's picture needs (`figure`).
+    - `recursive`: also the loop files in the folders' subfolders.
     - `diagnose`: name the cause of the loops not called sticky by the full
       diagnosis (`diagnose_causes`; in this process, also with a `scheduler`).
 
@@ -469,7 +489,7 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
 
     **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
     """
-    items, errors, warned = read_items(paths, ts=ts, settings=settings)
+    items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive)
     bar = None
     if progress:
         from tqdm import tqdm

@@ -567,6 +567,15 @@ def test_find_loop_files(tmp_path):
         r"no \.csv or \.mat files in folder", find_loop_files, [tmp_path / "empty"]
     )
     assert find_loop_files([]) == []
+    # recursive: subfolders too (hidden ones skipped), sorted by path
+    (tmp_path / ".git").mkdir()
+    (tmp_path / ".git" / "x.csv").write_text("OP,PV\n1,2\n")
+    (tmp_path / "sub" / "deeper").mkdir()
+    (tmp_path / "sub" / "deeper" / "y.mat").write_text("")
+    files = find_loop_files(tmp_path, recursive=True)
+    assert [f.relative_to(tmp_path).as_posix() for f in files] == ["a.CSV", "b.csv", "c.mat", "sub/deeper/y.mat",
+                                                                   "sub/z.csv"]
+    assert find_loop_files(tmp_path) == files[:3]
 
 
 # ----------------------------------------------------------------------- ISDB file

@@ -114,6 +114,25 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch):
     assert results[0]["cause"] == "none"  # the entries passed in are not changed
 
 
+def test_read_items_names_are_unique_across_folders(tmp_path):
+    """Two units exporting the same tag: both loops are read, the second named by its
+    folder (every entry, note and diagnosis is keyed by name); `recursive` finds the
+    loops in subfolders."""
+    from jaxstiction._screen import read_items
+
+    rng = np.random.default_rng(1)
+    for unit in ("unit1", "unit2"):
+        (tmp_path / unit).mkdir()
+        _csv(tmp_path / unit / "FC101.csv", 50 + rng.normal(0, 1, 1000), rng.normal(0, 1, 1000))
+    items, errors, _ = read_items([tmp_path / "unit1", tmp_path / "unit2", tmp_path / "unit2" / "FC101.csv"])
+    assert not errors and [it[0] for it in items] == ["FC101", "unit2/FC101"]  # a file given twice is read once
+    assert not np.array_equal(items[0][2], items[1][2])
+    items, _, _ = read_items([tmp_path], recursive=True)
+    assert [it[0] for it in items] == ["FC101", "unit2/FC101"]
+    with pytest.raises(ValueError, match="no .csv or .mat files"):
+        read_items([tmp_path])  # the top level holds no loop file
+
+
 def test_residual_line_finds_a_sinusoid():
     rng = np.random.default_rng(0)
     t = np.arange(1500)
