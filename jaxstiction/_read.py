@@ -193,6 +193,16 @@ def _parse_number(cell: str, decimal_comma: bool = False) -> float:
         raise
 
 
+def _cell_number(text: str, column: str, line: int, where: str, decimal_comma: bool) -> float:
+    """One CSV cell as a number, or a `LoopDataError` naming its column and line."""
+    try:
+        return _parse_number(text, decimal_comma)
+    except ValueError:
+        raise LoopDataError(
+            f"non-numeric value {_short(text)!r} in column `{column}` at line {line} of {where}"
+        ) from None
+
+
 def _parse_times(cells: list[tuple[int, str]], column: str, where: str, decimal_comma: bool) -> np.ndarray:
     """The `t` column in seconds: numbers as they are, or ISO 8601 date-times
     (`2024-03-01 12:00:00`, `2024-03-01T12:00:00.5+01:00`, ...) as seconds after the
@@ -203,16 +213,8 @@ def _parse_times(cells: list[tuple[int, str]], column: str, where: str, decimal_
         numeric = True
     except ValueError:
         numeric = False
-    out = np.empty(len(cells))
     if numeric:
-        for i, (line, text) in enumerate(cells):
-            try:
-                out[i] = _parse_number(text, decimal_comma)
-            except ValueError:
-                raise LoopDataError(
-                    f"non-numeric value {_short(text)!r} in column `{column}` at line {line} of {where}"
-                ) from None
-        return out
+        return np.array([_cell_number(text, column, line, where, decimal_comma) for line, text in cells])
     stamps = []
     for line, text in cells:
         try:
@@ -228,16 +230,20 @@ def _parse_times(cells: list[tuple[int, str]], column: str, where: str, decimal_
     return np.array([(s - stamps[0]).total_seconds() for s in stamps])
 
 
-def _datetime_seconds(values: object) -> object:
-    """NumPy/pandas date-times or durations as seconds (after the first date-time);
-    anything else unchanged."""
+def _time_seconds(values: Any) -> np.ndarray | None:
+    """Date-times (as seconds after the first; time zones honoured) or durations as
+    seconds, from a NumPy array or a pandas column or index; `None` for anything else."""
     kind = getattr(getattr(values, "dtype", None), "kind", "")
-    if kind not in ("M", "m"):
-        return values
-    arr = np.asarray(values)
-    if arr.size and kind == "M":
-        arr = arr - arr.reshape(-1)[0]
-    return arr / np.timedelta64(1, "s")
+    if kind not in ("M", "m") or np.size(values) == 0:
+        return None
+    try:
+        arr = getattr(values, "array", None)  # pandas: its date-time/duration array
+        if arr is None:
+            arr = np.asarray(values)
+            return (arr - arr.reshape(-1)[0] if kind == "M" else arr) / np.timedelta64(1, "s")
+        return np.asarray((arr - arr[0] if kind == "M" else arr).total_seconds(), dtype=np.float64)
+    except (AttributeError, TypeError, ValueError):
+        return None
 
 
 def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
@@ -281,16 +287,8 @@ def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
                 )
             if "t" in index:
                 times.append((reader.line_num, row[index["t"]]))
-            for canon in data:
-                j = index[canon]
-                try:
-                    data[canon].append(_parse_number(row[j], decimal_comma))
-                except ValueError:
-                    column = _COLUMN[canon]
-                    raise LoopDataError(
-                        f"non-numeric value {_short(row[j])!r} in column `{column}` "
-                        f"at line {reader.line_num} of {where}"
-                    ) from None
+            for canon, values in data.items():
+                values.append(_cell_number(row[index[canon]], _COLUMN[canon], reader.line_num, where, decimal_comma))
     except csv.Error as exc:
         raise LoopDataError(f"{where} is not a readable CSV file ({exc})") from None
     if not data["op"]:
@@ -326,33 +324,15 @@ def _frame_column(df: Any, key: object, column: str, where: str) -> np.ndarray:
         return _as_column(series.to_numpy(dtype=object), column, f"{where}: ")
 
 
-def _frame_time(df: Any) -> np.ndarray | None:
-    """Seconds from a DatetimeIndex/TimedeltaIndex, else `None`."""
-    idx = df.index
-    kind = getattr(getattr(idx, "dtype", None), "kind", "")
-    if kind not in ("M", "m") or len(idx) == 0:
-        return None
-    try:
-        if kind == "M":
-            idx = idx - idx[0]
-        return np.asarray(idx.total_seconds(), dtype=np.float64)
-    except (AttributeError, TypeError, ValueError):
-        return None
-
-
 def _read_frame(df: Any, where: str) -> dict[str, np.ndarray | None]:
     columns = _match_columns(list(df.columns), where)
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, key in columns.items():
         column = _COLUMN[canon]
-        kind = getattr(getattr(df[key], "dtype", None), "kind", "")
-        if canon == "t" and kind in ("M", "m") and getattr(df[key], "ndim", 1) == 1 and len(df) > 0:
-            series = df[key] - df[key].iloc[0] if kind == "M" else df[key]  # time zones included
-            out[canon] = np.asarray(series.dt.total_seconds().to_numpy(dtype=np.float64, na_value=np.nan))
-        else:
-            out[canon] = _frame_column(df, key, column, where)
-    if out["t"] is None:
-        out["t"] = _frame_time(df)
+        seconds = _time_seconds(df[key]) if canon == "t" else None
+        out[canon] = seconds if seconds is not None else _frame_column(df, key, column, where)
+    if out["t"] is None:  # a DatetimeIndex or TimedeltaIndex
+        out["t"] = _time_seconds(df.index)
     return out
 
 
@@ -363,8 +343,8 @@ def _read_mapping(
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, key in columns.items():
         column = _COLUMN[canon]
-        value = _datetime_seconds(m[key]) if canon == "t" else m[key]
-        out[canon] = _as_column(value, column, f"{where}: ")
+        seconds = _time_seconds(m[key]) if canon == "t" else None
+        out[canon] = _as_column(m[key] if seconds is None else seconds, column, f"{where}: ")
     file_ts = None
     for key, value in m.items():
         if _norm(key) == "ts":
