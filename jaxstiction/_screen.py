@@ -15,9 +15,11 @@ Dask cluster (`scheduler=`), each task one batched fit.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
+import sys
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -407,6 +409,26 @@ class ScreenReport:
         return {"loops": loops, "summary": self.counts}
 
 
+@contextlib.contextmanager
+def _progress_bar(show: bool, total: int, desc: str):
+    """A tqdm bar on stderr counting loops (its `update`), or `None` when not shown."""
+    if not (show and total):
+        yield None
+        return
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="loop", desc=desc, file=sys.stderr)
+    try:
+        yield bar.update
+    finally:
+        bar.close()
+
+
+def _to_diagnose(r: dict) -> bool:
+    """Whether `diagnose_causes` diagnoses this entry: fitted, not called sticky."""
+    return r["status"] == "ok" and not r["stiction_detected"]
+
+
 def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: Any = None, *,
                     progress: Callable[[int], Any] | None = None) -> list[dict]:
     """The `cause` of every fitted loop that is not called sticky, from the full
@@ -426,7 +448,7 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
     settings = DiagnoseSettings() if settings is None else settings
     by_name = {it[0]: it for it in items}
     out = list(results)
-    todo = [i for i, r in enumerate(out) if r["status"] == "ok" and not r["stiction_detected"] and r["name"] in by_name]
+    todo = [i for i, r in enumerate(out) if _to_diagnose(r) and r["name"] in by_name]
     # by record length, and the compiled programs of one length dropped before the
     # next: a diagnosis compiles hundreds of MB of programs per length (14 ISDB
     # loops: 3.9 GB kept, 7 lengths)
@@ -490,28 +512,11 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
     """
     items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(items), unit="loop", desc="screen", file=__import__("sys").stderr)
-    try:
-        results = _run(items, settings, bar.update if bar else None, scheduler, pictures)
-    finally:
-        if bar is not None:
-            bar.close()
+    with _progress_bar(progress, len(items), "screen") as update:
+        results = _run(items, settings, update, scheduler, pictures)
     if diagnose:
-        todo = sum(r["status"] == "ok" and not r["stiction_detected"] for r in results)
-        bar = None
-        if progress and todo:
-            from tqdm import tqdm
-
-            bar = tqdm(total=todo, unit="loop", desc="diagnose", file=__import__("sys").stderr)
-        try:
-            results = diagnose_causes(results, items, progress=bar.update if bar else None)
-        finally:
-            if bar is not None:
-                bar.close()
+        with _progress_bar(progress, sum(map(_to_diagnose, results)), "diagnose") as update:
+            results = diagnose_causes(results, items, progress=update)
     for r in results:  # what the reader warned of goes first in the loop's note
         if r["name"] in warned:
             r["note"] = "; ".join(n for n in (warned[r["name"]], r.get("note", "")) if n)
