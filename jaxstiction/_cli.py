@@ -280,7 +280,8 @@ def build_parser():
     s.add_argument("-r", "--recursive", action="store_true", help="also the loop files in subfolders")
     s.add_argument("--ts", type=float, default=None, help="sampling time (s) for files without a t column")
     s.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                   help="run the chunks on a Dask cluster (e.g. tcp://host:8786); needs jaxstiction[dask]")
+                   help="run the chunks (and with --diagnose the diagnoses) on a Dask cluster (e.g. tcp://host:8786); "
+                        "needs jaxstiction[dask]")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
                    help="longest process dead time tried, in samples (default 3)")

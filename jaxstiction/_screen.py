@@ -10,7 +10,8 @@ whole (an XLA error, memory) is re-run one loop at a time, so only the loop that
 caused it loses its result.
 
 Chunks run in this process, on every local JAX device in turn, or as tasks on a
-Dask cluster (`scheduler=`), each task one batched fit.
+Dask cluster (`scheduler=`), each task one batched fit; with `diagnose`, each
+loop's diagnosis is one more task.
 """
 
 from __future__ import annotations
@@ -347,14 +348,24 @@ def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
     return out
 
 
-def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
+@contextlib.contextmanager
+def _dask_client(scheduler):
+    """`(client, as_completed)` for a Dask scheduler address or `Client`; a client
+    opened here from an address is closed on exit."""
     try:
         from dask.distributed import as_completed, Client
     except ImportError as e:  # pragma: no cover - depends on the install
         raise ValueError("--scheduler needs dask.distributed: pip install 'jaxstiction[dask]'") from e
-    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    if isinstance(scheduler, Client):
+        yield scheduler, as_completed
+        return
+    with Client(scheduler) as client:
+        yield client, as_completed
+
+
+def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
     x64 = bool(jax.config.jax_enable_x64)
-    try:
+    with _dask_client(scheduler) as (client, as_completed):
         futures = {client.submit(run_chunk, members, length, size, settings, pictures=pictures, enable_x64=x64,
                                  pure=False): members for length, size, members in chunks}
         out = []
@@ -367,9 +378,6 @@ def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
             if progress is not None:
                 progress(len(members))
         return out
-    finally:
-        if client is not scheduler:
-            client.close()
 
 
 def rank(results: Iterable[dict]) -> list[dict]:
@@ -429,8 +437,47 @@ def _to_diagnose(r: dict) -> bool:
     return r["status"] == "ok" and not r["stiction_detected"]
 
 
+_DIAGNOSED_LENGTH = [None]  # the record length whose compiled diagnosis programs this process holds
+
+
+def diagnose_entry(entry: dict, op, pv, ts, settings, *, enable_x64: bool = False) -> dict:
+    """One screen entry with its `cause` from the full diagnosis (see
+    `diagnose_causes`); a new dict. A top-level function of plain arguments, so a
+    Dask worker can run it; `enable_x64` turns on float64 there.
+
+    A diagnosis compiles hundreds of MB of programs per record length (14 ISDB
+    loops: 3.9 GB kept over 7 lengths), so a process drops them when the length
+    changes: callers send loops in order of length."""
+    from ._diagnose import diagnose
+
+    if enable_x64:
+        jax.config.update("jax_enable_x64", True)
+    n = int(np.shape(op)[0])
+    if _DIAGNOSED_LENGTH[0] not in (None, n):
+        jax.clear_caches()
+        release_freed_memory()
+    _DIAGNOSED_LENGTH[0] = n
+    r = dict(entry)
+    try:
+        d = diagnose(make_loop(op, pv, ts), None, settings)
+    except Exception as e:  # noqa: BLE001 - a failed diagnosis costs only this loop's cause
+        return _noted(r, f"diagnose failed, cause from the screen: {_one_line(e)}")
+    r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up,
+                      "accepted": [f.effect for f in d.findings if f.accepted]}
+    if d.verdict == "stiction":
+        return _noted(r, "diagnose names stiction, which the screen's held-out test did not confirm; "
+                         "cause from the screen")
+    r["cause"] = d.verdict
+    return r
+
+
+def _noted(r: dict, said: str) -> dict:
+    r["note"] = "; ".join(n for n in (r.get("note", ""), said) if n)
+    return r
+
+
 def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: Any = None, *,
-                    progress: Callable[[int], Any] | None = None) -> list[dict]:
+                    progress: Callable[[int], Any] | None = None, scheduler: Any = None) -> list[dict]:
     """The `cause` of every fitted loop that is not called sticky, from the full
     mismatch diagnosis ([`jaxstiction.diagnose`][], no nominal model) instead of the
     screen's own residual-line test: its whole vocabulary (`deadband`, `dead_time`,
@@ -438,47 +485,39 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
     ~10-80 s per loop. Each such entry gains `diagnosis` (`verdict`, `runner_up`,
     `accepted`). A diagnosis that names stiction where the screen's held-out test did
     not leaves the screen's cause and says so in the `note`; a diagnosis that fails
-    leaves it too, with the one-line error in the `note`.
+    (or whose Dask task is lost) leaves it too, with the one-line error in the `note`.
 
     `results`: entries of `screen_loops`; `items`: the `(name, file, op, pv, ts)`
     tuples they came from; `settings`: `DiagnoseSettings`; `progress`: called with 1
-    after each diagnosis. Returns new entries, in the same order."""
-    from ._diagnose import diagnose, DiagnoseSettings
+    after each diagnosis; `scheduler`: a Dask scheduler address or
+    `dask.distributed.Client`, to run one task per loop on the cluster. Returns new
+    entries, in the same order."""
+    from ._diagnose import DiagnoseSettings
 
     settings = DiagnoseSettings() if settings is None else settings
     by_name = {it[0]: it for it in items}
     out = list(results)
     todo = [i for i, r in enumerate(out) if _to_diagnose(r) and r["name"] in by_name]
-    # by record length, and the compiled programs of one length dropped before the
-    # next: a diagnosis compiles hundreds of MB of programs per length (14 ISDB
-    # loops: 3.9 GB kept, 7 lengths)
-    todo.sort(key=lambda i: by_name[out[i]["name"]][2].shape[0])
-    length = None
-    for i in todo:
-        r = dict(out[i])
-        _, _, op, pv, ts = by_name[r["name"]]
-        if length is not None and op.shape[0] != length:
-            jax.clear_caches()
-            release_freed_memory()
-        length = op.shape[0]
-        said = None
-        try:
-            d = diagnose(make_loop(op, pv, ts), None, settings)
-        except Exception as e:  # noqa: BLE001 - a failed diagnosis costs only this loop's cause
-            said = f"diagnose failed, cause from the screen: {_one_line(e)}"
-        else:
-            r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up,
-                              "accepted": [f.effect for f in d.findings if f.accepted]}
-            if d.verdict == "stiction":
-                said = ("diagnose names stiction, which the screen's held-out test did not confirm; "
-                        "cause from the screen")
-            else:
-                r["cause"] = d.verdict
-        if said:
-            r["note"] = "; ".join(n for n in (r.get("note", ""), said) if n)
-        out[i] = r
-        if progress is not None:
-            progress(1)
+    todo.sort(key=lambda i: by_name[out[i]["name"]][2].shape[0])  # see `diagnose_entry`
+    if scheduler is None:
+        for i in todo:
+            _, _, op, pv, ts = by_name[out[i]["name"]]
+            out[i] = diagnose_entry(out[i], op, pv, ts, settings)
+            if progress is not None:
+                progress(1)
+        return out
+    x64 = bool(jax.config.jax_enable_x64)
+    with _dask_client(scheduler) as (client, as_completed):
+        futures = {client.submit(diagnose_entry, out[i], *by_name[out[i]["name"]][2:], settings, enable_x64=x64,
+                                 pure=False): i for i in todo}
+        for fut in as_completed(futures):
+            i = futures[fut]
+            try:
+                out[i] = fut.result()
+            except Exception as e:  # noqa: BLE001 - a lost worker costs only this loop's cause
+                out[i] = _noted(dict(out[i]), f"diagnose failed, cause from the screen: task failed: {_one_line(e)}")
+            if progress is not None:
+                progress(1)
     return out
 
 
@@ -501,22 +540,25 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     - `ts`: sampling time for files without a `t` column.
     - `progress`: show a progress bar (tqdm) on stderr.
     - `scheduler`: a Dask scheduler address (or a `dask.distributed.Client`): each
-      chunk becomes one task on the cluster.
+      chunk becomes one task on the cluster (with `diagnose`, each diagnosis too).
     - `pictures`: keep the arrays each loop's picture needs (`figure`).
     - `recursive`: also the loop files in the folders' subfolders.
     - `diagnose`: name the cause of the loops not called sticky by the full
-      diagnosis (`diagnose_causes`; in this process, also with a `scheduler`).
+      diagnosis (`diagnose_causes`).
 
     **Returns:** a [`jaxstiction.ScreenReport`][].
 
     **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
     """
     items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive)
-    with _progress_bar(progress, len(items), "screen") as update:
-        results = _run(items, settings, update, scheduler, pictures)
-    if diagnose:
-        with _progress_bar(progress, sum(map(_to_diagnose, results)), "diagnose") as update:
-            results = diagnose_causes(results, items, progress=update)
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:  # one client for both stages
+            scheduler = stack.enter_context(_dask_client(scheduler))[0]
+        with _progress_bar(progress, len(items), "screen") as update:
+            results = _run(items, settings, update, scheduler, pictures)
+        if diagnose:
+            with _progress_bar(progress, sum(map(_to_diagnose, results)), "diagnose") as update:
+                results = diagnose_causes(results, items, progress=update, scheduler=scheduler)
     for r in results:  # what the reader warned of goes first in the loop's note
         if r["name"] in warned:
             r["note"] = "; ".join(n for n in (warned[r["name"]], r.get("note", "")) if n)

@@ -71,17 +71,20 @@ def test_rank_by_the_larger_heldout_gain():
     assert [r["name"] for r in rank(loops)] == ["pred", "sim", "weak", "healthy", "err"]
 
 
-def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch):
+@pytest.mark.parametrize("on", ["process", "cluster"])
+def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
     """`screen --diagnose`: every fitted loop not called sticky gets its cause from
     `diagnose` (no nominal model) on its own record, with a `diagnosis` summary;
     sticky loops and errors are left alone; a diagnosis naming stiction against the
-    screen's test, or failing, leaves the screen's cause and says so in the note."""
+    screen's test, or failing, leaves the screen's cause and says so in the note.
+    The same on a Dask cluster, one task per loop (an in-process LocalCluster, so
+    the patched `diagnose` is the one its worker calls)."""
     from jaxstiction import _diagnose
     from jaxstiction._screen import diagnose_causes
 
     n = 300
     rng = np.random.default_rng(0)
-    items = [(name, None, rng.normal(50, 1, n), rng.normal(0, 1, n), 2.0) for name in "abcde"]
+    items = [(name, None, rng.normal(50, 1, n), rng.normal(0, 1, n), ts) for name, ts in zip("abcde", range(1, 6))]
     base = {"status": "ok", "stiction_detected": False, "cause": "none"}
     results = [{**base, "name": "a"}, {**base, "name": "b", "stiction_detected": True, "cause": "stiction"},
                {**base, "name": "c", "cause": "external_oscillation", "note": "earlier"},
@@ -94,7 +97,7 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch):
 
     def fake(loop, nominal, settings):
         seen.append((int(loop.op.shape[0]), float(loop.ts), nominal))
-        verdict = {0: "deadband", 1: "stiction", 2: None}[len(seen) - 1]
+        verdict = {1.0: "deadband", 3.0: "stiction", 4.0: None}[float(loop.ts)]
         if verdict is None:
             raise ValueError("boom")
         return type("D", (), {"verdict": verdict, "runner_up": "drift",
@@ -102,8 +105,14 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch):
 
     monkeypatch.setattr(_diagnose, "diagnose", fake)
     ticks = []
-    out = diagnose_causes(results, items, progress=ticks.append)
-    assert seen == [(n, 2.0, None)] * 3 and ticks == [1, 1, 1]
+    if on == "process":
+        out = diagnose_causes(results, items, progress=ticks.append)
+    else:
+        distributed = pytest.importorskip("dask.distributed")
+        with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                      dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+            out = diagnose_causes(results, items, progress=ticks.append, scheduler=client)
+    assert sorted(seen) == [(n, 1.0, None), (n, 3.0, None), (n, 4.0, None)] and ticks == [1, 1, 1]
     a, b, c, d, e = out
     assert a["cause"] == "deadband" and a["diagnosis"] == {"verdict": "deadband", "runner_up": "drift",
                                                           "accepted": ["deadband"]}
