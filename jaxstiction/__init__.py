@@ -77,7 +77,12 @@ from ._physical import (
     PhysicalFit as PhysicalFit,
     PhysicalSettings as PhysicalSettings,
 )
-from ._read import find_loop_files as find_loop_files, loop_name as loop_name, read_loop as read_loop
+from ._read import (
+    find_loop_files as find_loop_files,
+    list_loops as list_loops,
+    loop_name as loop_name,
+    read_loop as read_loop,
+)
 from ._read_mat import list_mat_loops as list_mat_loops
 from ._reduce import (
     asymptotic_weight as asymptotic_weight,

@@ -250,6 +250,10 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+_NAME_HELP = ("which loop of a file holding several: a loop of a .mat file, or a tag of a CSV file with tagged "
+              "columns (FIC101 for FIC101.OP, FIC101.PV)")
+
+
 def build_parser():
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -269,7 +273,7 @@ def build_parser():
     f.add_argument("--validate", type=float, default=1 / 3, metavar="FRACTION",
                    help="hold out the last FRACTION for validation (default 1/3; 0: validate on the estimation data)")
     f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
-    f.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
+    f.add_argument("--name", default=None, help=_NAME_HELP)
     f.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
                    help="longest process dead time tried, in samples (default 3)")
     f.set_defaults(func=cmd_fit)
@@ -304,7 +308,7 @@ def build_parser():
                    help="parametric bootstrap replicates (default 39)")
     g.add_argument("--ts", type=float, default=None,
                    help="sampling time (s) (default: the nominal model's, else the file's t column)")
-    g.add_argument("--name", default=None, help="loop name (for .mat files holding several loops)")
+    g.add_argument("--name", default=None, help=_NAME_HELP)
     g.set_defaults(func=cmd_diagnose)
     return p
 

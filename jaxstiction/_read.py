@@ -3,13 +3,16 @@
 - [`jaxstiction.read_loop`][] reads one loop into a [`jaxstiction.Loop`][] (OP, PV,
   mask and sampling time). Accepted sources:
     - a delimited text file (`.csv`, `.tsv`, `.txt`): a header row naming the
-      columns, then one row per sample; `OP` and `PV` are required, `t` (or `time`
-      or `timestamp`: seconds, or ISO 8601 date-times) and `SP` are optional, other
-      columns are ignored. Comma, semicolon and tab separators are recognised from
-      the header line; beside semicolons and tabs, decimal commas are read too.
+      columns, then one row per sample; `OP` and `PV` are required, `t` (or `time`,
+      `timestamp` or `datetime`: seconds, or ISO 8601 date-times) and `SP` are
+      optional, other columns are ignored. Historian exports with tagged columns
+      (`FIC101.OP`, `FIC101.PV`, `FIC102.OP`, ...) hold one loop per tag. Comma,
+      semicolon and tab separators are recognised from the header line; beside
+      semicolons and tabs, decimal commas are read too.
     - a MATLAB `.mat` file holding one or more structs with fields `OP`, `PV` and
       `Ts` (see `jaxstiction._read_mat`).
     - a pandas DataFrame or a mapping with such columns or keys.
+- [`jaxstiction.list_loops`][] names the loops of a file that holds several.
 - [`jaxstiction.find_loop_files`][] expands files and folders for batch screening.
 - [`jaxstiction.loop_name`][] gives the label of a loop read from a path.
 
@@ -36,7 +39,7 @@ from ._checks import _as_column, _nonfinite_message, check_loop, LoopDataError, 
 from ._loop import Loop, make_loop
 
 
-__all__ = ["find_loop_files", "loop_name", "read_loop"]
+__all__ = ["find_loop_files", "list_loops", "loop_name", "read_loop"]
 
 _CSV_SUFFIXES = (".csv", ".tsv", ".txt")
 _MAT_SUFFIXES = (".mat",)
@@ -63,15 +66,51 @@ def _found(keys: Iterable[object], limit: int = 12) -> str:
     return shown or "none"
 
 
-def _match_columns(keys: Iterable[object], where: str) -> dict[str, object]:
+_TIME_NAMES = ("t", "time", "timestamp", "datetime")
+_TAG_SEPARATORS = (".", "_", "/", ":", "-", " ", "\t")
+
+
+def _tag_split(key: object) -> tuple[str, str] | None:
+    """`(prefix, "op"|"pv"|"sp")` for a historian-style column name such as
+    `FIC101.PV`, `FIC101_OP` or `FIC101 SP` (the part after the last separator),
+    else `None`."""
+    text = str(key).strip()
+    i = max(text.rfind(c) for c in _TAG_SEPARATORS)
+    prefix, suffix = text[:i].strip(), text[i + 1 :].strip().lower()
+    return (prefix, suffix) if i > 0 and prefix and suffix in ("op", "pv", "sp") else None
+
+
+def _tagged_loops(keys: Iterable[object], where: str) -> dict[str, dict[str, object]]:
+    """The loops of a file whose columns are tagged (`FIC101.OP`, `FIC101.PV`, ...):
+    tag prefix → `{"op": key, "pv": key[, "sp": key]}`, for prefixes with both OP
+    and PV. Prefixes match case-insensitively."""
+    groups: dict[str, dict[str, object]] = {}
+    for key in keys:
+        tag = _tag_split(key)
+        if tag is None:
+            continue
+        prefix, canon = tag
+        g = groups.setdefault(prefix.lower(), {"": prefix})
+        if canon in g:
+            raise LoopDataError(f"ambiguous columns {_short(g[canon])!r} and {_short(key)!r} in {where} "
+                                f"(both read as `{_COLUMN[canon]}` of {prefix!r})")
+        g[canon] = key
+    return {str(g.pop("")): g for g in groups.values() if "op" in g and "pv" in g}
+
+
+def _match_columns(keys: Iterable[object], where: str, name: str | None = None) -> dict[str, object]:
     """Map the canonical names `op, pv, sp, t` to the original keys present in `keys`.
 
-    Matching is case-insensitive after stripping spaces; `time` and `timestamp` are
-    accepted for `t`.
-    Raises when `OP` or `PV` is missing or a name matches twice.
+    Matching is case-insensitive after stripping spaces; `time`, `timestamp` and
+    `datetime` are accepted for `t`. Without columns named `OP` and `PV`, tagged
+    columns (`FIC101.OP`, `FIC101.PV`, optionally `FIC101.SP`; separators `.`, `_`,
+    `/`, `:`, `-` or a space) are read: the one tag that has both, or the tag `name`
+    when several do.
+    Raises when `OP` or `PV` is missing, a name matches twice, or several tagged
+    loops are present and `name` picks none of them.
     """
     keys = list(keys)
-    aliases = {"op": "op", "pv": "pv", "sp": "sp", "t": "t", "time": "t", "timestamp": "t"}
+    aliases = {"op": "op", "pv": "pv", "sp": "sp", **{k: "t" for k in _TIME_NAMES}}
     out: dict[str, object] = {}
     for key in keys:
         canon = aliases.get(_norm(key))
@@ -83,6 +122,19 @@ def _match_columns(keys: Iterable[object], where: str) -> dict[str, object]:
                 f"in {where} (both read as `{_COLUMN[canon]}`)"
             )
         out[canon] = key
+    if "op" in out and "pv" in out:
+        return out
+    loops = _tagged_loops(keys, where)
+    if loops:
+        by_key = {k.lower(): k for k in loops}
+        tag = by_key.get(name.strip().lower()) if name is not None else None
+        if tag is None and len(loops) == 1:
+            tag = next(iter(loops))
+        if tag is None:
+            what = f"no loop named {name!r}" if name is not None else f"{len(loops)} loops"
+            raise LoopDataError(f"{what} in {where} (tags with OP and PV columns: {_found(loops, limit=20)}); "
+                                "pick one with `name` (--name on the command line)")
+        return {**{k: v for k, v in out.items() if k == "t"}, **loops[tag]}
     for canon in ("op", "pv"):
         if canon not in out:
             raise LoopDataError(
@@ -246,7 +298,9 @@ def _time_seconds(values: Any) -> np.ndarray | None:
         return None
 
 
-def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
+def _csv_reader(path: Path, where: str):
+    """`(reader, header, delimiter)`: a `csv.reader` past the header row of a text
+    file, the header's cells and the separator found in it."""
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -265,13 +319,16 @@ def _read_csv(path: Path, where: str) -> dict[str, np.ndarray | None]:
     delimiter = max(counts, key=lambda d: counts[d]) if any(counts.values()) else ","
     reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
     try:
-        header: list[str] | None = None
-        for row in reader:
-            if any(cell.strip() for cell in row):
-                header = row
-                break
-        assert header is not None
-        columns = _match_columns(header, where)
+        header = next(row for row in reader if any(cell.strip() for cell in row))
+    except csv.Error as exc:
+        raise LoopDataError(f"{where} is not a readable CSV file ({exc})") from None
+    return reader, header, delimiter
+
+
+def _read_csv(path: Path, where: str, name: str | None = None) -> dict[str, np.ndarray | None]:
+    reader, header, delimiter = _csv_reader(path, where)
+    try:
+        columns = _match_columns(header, where, name)
         index = {canon: header.index(key) for canon, key in columns.items()}  # type: ignore[arg-type]
         decimal_comma = delimiter != ","
         data: dict[str, list[float]] = {canon: [] for canon in index if canon != "t"}
@@ -324,8 +381,8 @@ def _frame_column(df: Any, key: object, column: str, where: str) -> np.ndarray:
         return _as_column(series.to_numpy(dtype=object), column, f"{where}: ")
 
 
-def _read_frame(df: Any, where: str) -> dict[str, np.ndarray | None]:
-    columns = _match_columns(list(df.columns), where)
+def _read_frame(df: Any, where: str, name: str | None = None) -> dict[str, np.ndarray | None]:
+    columns = _match_columns(list(df.columns), where, name)
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, key in columns.items():
         column = _COLUMN[canon]
@@ -337,9 +394,9 @@ def _read_frame(df: Any, where: str) -> dict[str, np.ndarray | None]:
 
 
 def _read_mapping(
-    m: Mapping, where: str
+    m: Mapping, where: str, name: str | None = None
 ) -> tuple[dict[str, np.ndarray | None], object]:
-    columns = _match_columns(list(m.keys()), where)
+    columns = _match_columns(list(m.keys()), where, name)
     out: dict[str, np.ndarray | None] = {"sp": None, "t": None}
     for canon, key in columns.items():
         column = _COLUMN[canon]
@@ -370,8 +427,12 @@ def read_loop(
         - a path (`str` or `Path`) to a **CSV** file (`.csv`, also `.tsv`/`.txt`)
           with a header: columns `OP` and `PV` required, `t` (seconds, or ISO 8601
           date-times such as `2024-03-01 12:00:00`, read as seconds after the first;
-          `time` and `timestamp` are accepted as its name) and `SP` optional, other
-          columns ignored; names match case-insensitively after stripping spaces;
+          `time`, `timestamp` and `datetime` are accepted as its name) and `SP`
+          optional, other columns ignored; names match case-insensitively after
+          stripping spaces. Without `OP` and `PV` columns, historian-style tagged
+          columns are read (`FIC101.OP`, `FIC101.PV`, optionally `FIC101.SP`; the
+          separator may also be `_`, `/`, `:`, `-` or a space); a file with several
+          tags holds several loops, and `name` picks one;
           comma, semicolon or tab separated (decimal commas are read beside
           semicolons and tabs). Empty cells read as NaN (and are then reported).
         - a path to a MATLAB **`.mat`** file in the International Stiction Database
@@ -386,9 +447,11 @@ def read_loop(
         - a **mapping** (e.g. `dict`) with keys `OP`, `PV`, optionally `t`, `SP`, `Ts`.
     - `ts`: sampling time in seconds. Precedence: this argument; else the median
       step of `t`; else the file's `Ts` (`.mat`, mapping); else 1.0.
-    - `name`: for a `.mat` file with several loops, which one; for a DataFrame or a
-      mapping, the label used in error messages (default `"loop"`). Ignored for CSV
-      files. (To label a loop read from a path, use [`jaxstiction.loop_name`][].)
+    - `name`: for a file with several loops, which one (see
+      [`jaxstiction.list_loops`][]): a `.mat` file's loop, or the tag of a CSV
+      file's tagged columns; for a DataFrame or a mapping, the label used in error
+      messages (default `"loop"`), and the tag when its columns are tagged. (To
+      label a loop read from a path, use [`jaxstiction.loop_name`][].)
 
     **Returns:** a [`jaxstiction.Loop`][] with `op`, `pv`, `mask` (all ones) and
     `ts`. `SP` and `t` are checked (length, NaN/inf) but not returned; `t` only
@@ -416,7 +479,7 @@ def read_loop(
             raise LoopDataError(f"{where} is a folder, not a loop file")
         suffix = path.suffix.lower()
         if suffix in _CSV_SUFFIXES:
-            cols = _read_csv(path, where)
+            cols = _read_csv(path, where, name)
         elif suffix in _MAT_SUFFIXES:
             from ._read_mat import _read_mat
 
@@ -430,11 +493,11 @@ def read_loop(
     elif _is_dataframe(source):
         check_name = "loop" if name is None else name
         where = f"DataFrame {check_name!r}"
-        cols = _read_frame(source, where)
+        cols = _read_frame(source, where, name)
     elif isinstance(source, Mapping):
         check_name = "loop" if name is None else name
         where = f"mapping {check_name!r}"
-        cols, file_ts = _read_mapping(source, where)
+        cols, file_ts = _read_mapping(source, where, name)
     else:
         raise LoopDataError(
             f"cannot read loop data from a {type(source).__name__}; pass a path to a "
@@ -451,6 +514,29 @@ def loop_name(source: object) -> str:
     if isinstance(source, (str, os.PathLike)):
         return Path(source).stem
     return "loop"
+
+
+def list_loops(path: str | os.PathLike) -> list[str]:
+    """Names of the loops in a file that holds several, for `name` of
+    [`jaxstiction.read_loop`][]: the loops of a `.mat` file
+    ([`jaxstiction.list_mat_loops`][]), or the tags of a CSV file whose columns are
+    tagged (`FIC101.OP`, `FIC101.PV`, `FIC102.OP`, ...; tags with both OP and PV, in
+    column order). `[]` for a CSV file with plain `OP` and `PV` columns (one loop).
+
+    **Raises:** [`jaxstiction.LoopDataError`][] when the file cannot be read.
+    """
+    p = Path(path)
+    where = f"'{os.fspath(path)}'"
+    if p.suffix.lower() in _MAT_SUFFIXES:
+        from ._read_mat import list_mat_loops
+
+        return list_mat_loops(p)
+    if not p.is_file():
+        raise LoopDataError(f"file not found: {where}")
+    header = _csv_reader(p, where)[1]
+    if {"op", "pv"} <= {_norm(k) for k in header}:
+        return []
+    return list(_tagged_loops(header, where))
 
 
 def find_loop_files(

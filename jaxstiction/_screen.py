@@ -244,28 +244,26 @@ def _unique_name(name: str, path: Path, taken: set) -> str:
 def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings(),
                recursive: bool = False):
     """Read and check every loop under `paths` (files and folders, their subfolders
-    too with `recursive`; a `.mat` file may hold several loops). Returns `(items,
+    too with `recursive`; a `.mat` file, or a CSV file with tagged columns, may hold
+    several loops: see [`jaxstiction.list_loops`][]). Returns `(items,
     errors, warned)`: `(name, file, op, pv, ts)` tuples ready to fit, error entries
     (one line each) for the loops that cannot be, and the
     [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name. Names
     are unique: a name met again gets its folder in front (`unit2/FC101`)."""
     from ._checks import LoopDataWarning
-    from ._read import find_loop_files, loop_name, read_loop
-    from ._read_mat import list_mat_loops
+    from ._read import find_loop_files, list_loops, loop_name, read_loop
     from ._report import checked
 
     items, errors, warned = [], [], {}
     taken: set[str] = set()
     for path in find_loop_files(paths, recursive=recursive):
-        names: list[str | None] = [None]
-        if path.suffix.lower() == ".mat":
-            try:
-                names = list_mat_loops(path) or [None]
-            except Exception as e:  # noqa: BLE001 - a bad file is that file's error
-                name = _unique_name(path.stem, path, taken)
-                taken.add(name)
-                errors.append(_error(name, str(path), _message(e)))
-                continue
+        try:
+            names: list[str | None] = list(list_loops(path)) or [None]
+        except Exception as e:  # noqa: BLE001 - a bad file is that file's error
+            name = _unique_name(path.stem, path, taken)
+            taken.add(name)
+            errors.append(_error(name, str(path), _message(e)))
+            continue
         for sub in names:
             name = _unique_name(loop_name(path) if not sub else f"{path.stem}:{sub}", path, taken)
             taken.add(name)

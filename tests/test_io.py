@@ -79,6 +79,35 @@ def test_loop_name():
     assert js.loop_name is loop_name
 
 
+def test_csv_tagged_historian_columns(tmp_path):
+    """A historian export names columns by tag (`FIC101.OP`): with no plain `OP`/`PV`
+    the one tag holding both is read; a file with several tags holds several loops
+    (`list_loops`), `name` picks one (any case), and without it the error lists them."""
+    p = write_csv(tmp_path / "one.csv", ["Date Time", "FIC101.OP", "FIC101.PV", "FIC101.SP", "note"],
+                  [np.arange(N) * 2.0, OP, PV, SP, np.zeros(N)])
+    d = read_loop(p)
+    np.testing.assert_allclose(d.op, OP)
+    np.testing.assert_allclose(d.pv, PV)
+    assert float(d.ts) == 2.0 and js.list_loops(p) == ["FIC101"]
+    p = write_csv(tmp_path / "two.csv", ["t", "FIC101_PV", "FIC101_OP", "LIC 7 OP", "LIC 7 PV", "TI9/PV"],
+                  [np.arange(N), PV, OP, OP + 1, PV + 1, PV])
+    assert js.list_loops(p) == ["FIC101", "LIC 7"]  # TI9 has no OP: not a loop
+    np.testing.assert_allclose(read_loop(p, name="lic 7").op, OP + 1)
+    np.testing.assert_allclose(read_loop(p, name="FIC101").pv, PV)
+    raises_one_line(r"2 loops in .*two.csv.*FIC101, LIC 7.*name", read_loop, p)
+    raises_one_line(r"no loop named 'X' in .*FIC101, LIC 7", read_loop, p, name="X")
+    # plain OP and PV columns win over tagged ones; the file is then one loop
+    p = write_csv(tmp_path / "plain.csv", ["OP", "PV", "A.OP", "A.PV"], [OP, PV, OP + 1, PV + 1])
+    assert js.list_loops(p) == []
+    np.testing.assert_allclose(read_loop(p).op, OP)
+    raises_one_line(r"ambiguous columns 'A.OP' and 'A_OP'.*of 'A'", read_loop,
+                    write_csv(tmp_path / "dup.csv", ["A.OP", "A_OP", "A.PV"], [OP, OP, PV]))
+    raises_one_line(r"`OP` column missing.*found: B.PV", read_loop,
+                    write_csv(tmp_path / "nop.csv", ["B.PV", "C"], [PV, PV]))
+    # the same in a mapping: `name` picks the tag
+    np.testing.assert_allclose(read_loop({"X.OP": OP, "X.PV": PV, "Y.OP": OP + 1, "Y.PV": PV}, name="y").op, OP + 1)
+
+
 def test_csv_with_sp_odd_header_case_and_extra_columns(tmp_path):
     p = write_csv(
         tmp_path / "odd.csv",

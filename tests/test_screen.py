@@ -142,6 +142,23 @@ def test_read_items_names_are_unique_across_folders(tmp_path):
         read_items([tmp_path])  # the top level holds no loop file
 
 
+def test_read_items_reads_every_tag_of_a_historian_export(tmp_path):
+    """A CSV file with tagged columns of two loops gives two items, named like the
+    loops of a `.mat` file (`file:TAG`)."""
+    from jaxstiction._screen import read_items
+
+    rng = np.random.default_rng(2)
+    op, pv = 50 + rng.normal(0, 1, (2, 600)), rng.normal(0, 1, (2, 600))
+    with open(tmp_path / "unit.csv", "w") as f:
+        f.write("FIC1.OP,FIC1.PV,LIC2.OP,LIC2.PV\n")
+        for row in zip(op[0], pv[0], op[1], pv[1]):
+            f.write(",".join(map(str, row)) + "\n")
+    items, errors, _ = read_items([tmp_path])
+    assert not errors and [it[0] for it in items] == ["unit:FIC1", "unit:LIC2"]
+    np.testing.assert_allclose(items[1][2], op[1])
+    np.testing.assert_allclose(items[0][3], pv[0])
+
+
 def test_residual_line_finds_a_sinusoid():
     rng = np.random.default_rng(0)
     t = np.arange(1500)
