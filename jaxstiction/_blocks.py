@@ -32,12 +32,23 @@ from jaxtyping import Array, Float
 
 
 def _levels(u_open, count: int):
-    """Running maximum and minimum of the opening samples `u_open`, at `count` times
-    spread over them: the input levels whose first crossing gives the distinct first
-    slip times there (every one of them when `count == len(u_open)`)."""
+    """Running maximum and minimum of the opening samples `u_open` at up to `count`
+    of the samples where each reaches a new extreme: the input levels whose first
+    crossing gives the distinct first slip times there. Every one of them when there
+    are at most `count` such samples (the last repeated to fill `count`), else
+    `count` spread evenly over them."""
     u = jnp.asarray(u_open)
-    idx = jnp.round(jnp.linspace(0, u.shape[0] - 1, count)).astype(jnp.int32)
-    return jax.lax.cummax(u)[idx], jax.lax.cummin(u)[idx]
+    n = u.shape[0]
+
+    def at_new_extremes(run):
+        new = jnp.concatenate([jnp.ones((1,), bool), run[1:] != run[:-1]])
+        k = jnp.sum(new)
+        pos = jnp.nonzero(new, size=n, fill_value=n - 1)[0]
+        i = jnp.arange(count)
+        spread = jnp.round(i * (k - 1) / max(count - 1, 1)).astype(i.dtype)
+        return run[pos[jnp.where(k <= count, jnp.minimum(i, k - 1), spread)]]
+
+    return at_new_extremes(jax.lax.cummax(u)), at_new_extremes(jax.lax.cummin(u))
 
 
 def _stops(u_open, count: int, S, J):

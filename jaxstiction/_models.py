@@ -201,20 +201,26 @@ class LoopModel(eqx.Module):
         do before scoring a simulation.
 
         Every candidate state of the chain (each block's `initial_states` from the
-        opening samples, the other blocks at rest) is run over `op`; for each, the level at which the chain output
-        rests until it first moves and the process filter's state enter the
-        simulation linearly and are found by least squares on the samples where
-        `weights > 0` (typically the opening part of the record). The candidate with
-        the smallest weighted error wins. Offsets and parameters are not touched.
+        input up to the last sample of positive weight, the other blocks at rest;
+        for a valve, up to `count` stopping points per direction, one per distinct
+        first slip there) is run over
+        `op`; for each, the level at which the chain output rests until it first
+        moves and the process filter's state enter the simulation linearly and are
+        found by least squares on the samples where `weights > 0` (typically the
+        opening part of the record). The candidate with the smallest weighted error
+        wins. Offsets and parameters are not touched.
 
         `window` (static): when `weights` are zero from that sample on, the search
         runs on the samples before it only: the same answer for less work.
         """
         op, pv, weights = _f(op), _f(pv), _f(weights)
-        cands = self._chain_candidates(op, count)
         if window is not None and window < op.shape[0]:
             # every filter is causal: the samples after the last weighted one change nothing
             op, pv, weights = op[:window], pv[:window], weights[:window]
+        # candidates from the input up to the last weighted sample (held after it)
+        t = jnp.arange(op.shape[0])
+        last = jnp.max(jnp.where(weights > 0, t, 0))
+        cands = self._chain_candidates(jnp.where(t <= last, op, op[last]), count)
         b, a = self.process.polynomials()
         s = b.shape[0] - 1
         add = self._output(jnp.zeros_like(op)) if self.output else 0.0  # additive output blocks
@@ -260,10 +266,9 @@ class LoopModel(eqx.Module):
         op = jnp.asarray(op)
         if not self.chain:
             return jnp.zeros((1,), op.dtype)  # one (empty) candidate
-        n_open = min(op.shape[0], max(count, 1))
         rest, _ = self._chain_init(op[0])
-        # each block's input over the opening samples, from the rest start
-        inputs, v = [], op[:n_open]
+        # each block's input over the searched samples, from the rest start
+        inputs, v = [], op
         for blk, s0 in zip(self.chain, rest):
             inputs.append(v)
             _, v = jax.lax.scan(lambda s, x, b=blk: b.step(s, x), s0, v)

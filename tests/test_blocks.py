@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from jaxstiction._blocks import (
+    _levels,
     AbstractBlock,
     ActuatorLag,
     block_name,
@@ -761,6 +762,34 @@ def test_initial_states_realise_the_rest_start(cls):
         u = jnp.asarray(noisy_walk_input(60, seed))
         assert _first_change(run(blk, u)) < OPEN
         assert _realised(blk, blk.init(u[0]), u)
+
+
+def _levels_reference(u, count):
+    """The running extremes at the samples where each is new: all of them (the last
+    repeated) when at most `count`, else `count` spread evenly over them."""
+    out = []
+    for run in (np.maximum.accumulate(u), np.minimum.accumulate(u)):
+        pos = [0] + [t for t in range(1, len(u)) if run[t] != run[t - 1]]
+        k = len(pos)
+        if k <= count:
+            idx = [pos[min(i, k - 1)] for i in range(count)]
+        else:
+            idx = [pos[int(np.round(i * (k - 1) / max(count - 1, 1)))] for i in range(count)]
+        out.append(run[idx])
+    return out
+
+
+@pytest.mark.parametrize("count", [1, 4, 12, 80])
+def test_levels_are_the_distinct_running_extremes(count):
+    """`_levels` against a loop over the samples: the candidate slip levels are the
+    running extremes where they change (one per distinct first slip), wherever in the
+    opening samples they fall, not the first `count` samples."""
+    for seed in range(3):
+        u = np.asarray(noisy_walk_input(120, seed))
+        up, dn = (np.asarray(v) for v in jax.jit(_levels, static_argnums=1)(jnp.asarray(u), count))
+        ref_up, ref_dn = _levels_reference(u, count)
+        np.testing.assert_array_equal(up, ref_up)
+        np.testing.assert_array_equal(dn, ref_dn)
 
 
 @pytest.mark.parametrize("count", [1, 5, 12])

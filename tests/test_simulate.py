@@ -369,6 +369,27 @@ def test_initial_state_recovers_a_non_rest_start():
                                atol=1e-12)
 
 
+def test_initial_state_finds_a_first_slip_late_in_the_window():
+    """A valve at rest whose first slip comes after `count` samples (OP wanders inside
+    the slip jump for 60 samples, then ramps): the candidates come from the whole
+    searched window, so one slips at the same sample and the fit is exact. (They
+    used to come from the first `count` samples only: on `paper_sim` seed 34's
+    validation record the true plant, its valve stuck for 49 samples, scored 69 %.)"""
+    t = np.arange(400)
+    op = np.where(t < 60, 50 + 1.5 * np.sin(2 * np.pi * t / 30), 50 + 0.2 * (t - 60))
+    op = np.where(t < 90, op, 56 + np.cumsum(np.random.default_rng(4).normal(0, 1.5, 400)))
+    op = jnp.asarray(op)
+    plant = nominal_model(chain=(Kano(20.0, 2.0),))
+    pv = plant.simulate(op)  # from rest at op[0] = 50: first slips when OP passes 52
+    valve = np.asarray(plant.valve(op))
+    first_slip = int(np.argmax(valve != valve[0]))
+    assert first_slip == 71
+    est = plant.initial_state(op, pv, (jnp.arange(400) < 100).astype(op.dtype), count=16, window=100)
+    assert float(fitness(pv, plant.simulate(op, est))) > 99.99
+    np.testing.assert_allclose(np.asarray(plant.valve(op, est.chain))[first_slip:], valve[first_slip:], rtol=0,
+                               atol=1e-12)
+
+
 @pytest.mark.parametrize("window", [60, 200])
 def test_initial_state_window_changes_nothing(window):
     """`window` only skips samples of zero weight: the same state as the whole record
