@@ -549,9 +549,9 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
     """
     items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive)
-    with contextlib.ExitStack() as stack:
+    with contextlib.ExitStack() as client_scope:
         if scheduler is not None:  # one client for both stages
-            scheduler = stack.enter_context(_dask_client(scheduler))[0]
+            scheduler = client_scope.enter_context(_dask_client(scheduler))[0]
         with _progress_bar(progress, len(items), "screen") as update:
             results = _run(items, settings, update, scheduler, pictures)
         if diagnose:
