@@ -59,7 +59,7 @@ from ._hammerstein import (
     HammersteinModel as HammersteinModel,
     SplineSettings as SplineSettings,
 )
-from ._loop import Loop as Loop, make_loop as make_loop, stack as stack, unstack as unstack
+from ._loop import decimate as decimate, Loop as Loop, make_loop as make_loop, stack as stack, unstack as unstack
 from ._models import (
     InitialState as InitialState,
     LinearProcess as LinearProcess,

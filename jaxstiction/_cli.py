@@ -110,17 +110,27 @@ def cmd_demo(args):
     return 0
 
 
+def _decimated(args) -> str:
+    return f" (decimated by {args.decimate})" if args.decimate > 1 else ""
+
+
+def _decimate_field(args) -> dict:
+    """`{"decimate": K}` in the JSON when the record was decimated, else nothing."""
+    return {"decimate": args.decimate} if args.decimate > 1 else {}
+
+
 def cmd_fit(args):
     import numpy as np
 
     from ._estimate import Settings
+    from ._loop import decimate
     from ._read import loop_name, read_loop
     from ._report import fit
 
-    loop = read_loop(args.file, ts=args.ts, name=args.name)
+    loop = decimate(read_loop(args.file, ts=args.ts, name=args.name), args.decimate)
     name = args.name if args.name is not None else loop_name(args.file)
     op, pv, ts = np.asarray(loop.op), np.asarray(loop.pv), float(loop.ts)
-    _log(f"fit: {name}: {op.shape[0]} samples, Ts = {ts:g} s; fitting ...")
+    _log(f"fit: {name}: {op.shape[0]} samples, Ts = {ts:g} s{_decimated(args)}; fitting ...")
     t0 = time.time()
     settings = None if args.max_delay is None else Settings().with_max_delay(args.max_delay)
     r = fit(op, pv, ts=ts, validate=args.validate, name=name, settings=settings)
@@ -129,7 +139,7 @@ def cmd_fit(args):
         for n in r.notes:
             _log(f"fit: note: {n}")
     _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
-    _emit(args, r.to_json(), _summary(r))
+    _emit(args, {**r.to_json(), **_decimate_field(args)}, _summary(r))
     return 0
 
 
@@ -150,7 +160,8 @@ def cmd_screen(args):
     t0 = time.time()
     settings = screen_settings(args)
     rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
-                 pictures=bool(args.out), diagnose=args.diagnose, recursive=args.recursive)
+                 pictures=bool(args.out), diagnose=args.diagnose, recursive=args.recursive,
+                 decimate=args.decimate)
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -169,7 +180,7 @@ def cmd_screen(args):
     lines.append(summary)
     if args.json:
         _log(summary)
-    _emit(args, rep.to_json(), "\n".join(lines))
+    _emit(args, {**rep.to_json(), **_decimate_field(args)}, "\n".join(lines))
     return 0
 
 
@@ -199,15 +210,19 @@ def _diagnosis_text(name, d) -> str:
 
 def cmd_diagnose(args):
     from ._diagnose import diagnose, DiagnoseSettings
+    from ._loop import decimate
     from ._nominal import nominal_ts, read_nominal
     from ._read import loop_name, read_loop
 
     settings = DiagnoseSettings(holdout=args.holdout, bootstrap=args.bootstrap)  # bad options fail first
+    if args.model and args.decimate > 1:
+        raise ValueError("--decimate cannot be used with --model: a nominal model is written for its "
+                         "record's own sampling time (decimate the record and the model together)")
     nominal = read_nominal(args.model) if args.model else None
     ts = args.ts if args.ts is not None else (nominal_ts(args.model) if args.model else None)
-    loop = read_loop(args.file, ts=ts, name=args.name)
+    loop = decimate(read_loop(args.file, ts=ts, name=args.name), args.decimate)
     name = args.name if args.name is not None else loop_name(args.file)
-    _log(f"diagnose: {name}: {int(loop.op.shape[0])} samples"
+    _log(f"diagnose: {name}: {int(loop.op.shape[0])} samples{_decimated(args)}"
          + (f", nominal model {args.model}" if args.model else ", no nominal model: fitting a linear-valve one"))
     t0 = time.time()
     d = diagnose(loop, nominal, settings, progress=lambda m: _log(f"diagnose: {m}"))
@@ -216,7 +231,7 @@ def cmd_diagnose(args):
         from ._plots import write_diagnosis_figures
 
         write_diagnosis_figures(d, Path(args.out), name=name, ts=float(loop.ts))
-    payload = {"name": name, **d.to_json()}
+    payload = {"name": name, **d.to_json(), **_decimate_field(args)}
     _emit(args, payload, _diagnosis_text(name, d))
     return 0
 
@@ -254,6 +269,10 @@ _NAME_HELP = ("which loop of a file holding several: a loop of a .mat file, or a
               "columns (FIC101 for FIC101.OP, FIC101.PV)")
 
 
+_DECIMATE_HELP = ("fit the record at a K times longer sampling time, the means of K samples (for a record "
+                  "sampled much faster than its loop moves: delays, orders and horizons count samples)")
+
+
 def build_parser():
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -274,8 +293,9 @@ def build_parser():
                    help="hold out the last FRACTION for validation (default 1/3; 0: validate on the estimation data)")
     f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
     f.add_argument("--name", default=None, help=_NAME_HELP)
-    f.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
+    f.add_argument("--max-delay", type=_whole, default=None, metavar="N",
                    help="longest process dead time tried, in samples (default 3)")
+    f.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
     f.set_defaults(func=cmd_fit)
     s = sub.add_parser("screen", parents=[common],
                        help="screen loops (files, folders) for sticky valves, ranked; name other causes")
@@ -287,7 +307,7 @@ def build_parser():
                    help="run the chunks (and with --diagnose the diagnoses) on a Dask cluster (e.g. tcp://host:8786); "
                         "needs jaxstiction[dask]")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
-    s.add_argument("--max-delay", type=_max_delay, default=None, metavar="N",
+    s.add_argument("--max-delay", type=_whole, default=None, metavar="N",
                    help="longest process dead time tried, in samples (default 3)")
     s.add_argument("--full-search", action="store_true",
                    help="the full estimator's Kano search instead of the screen's lighter one: ~15 times slower "
@@ -296,6 +316,7 @@ def build_parser():
                    help="name the cause of each loop not called sticky by the full diagnosis (as `diagnose` "
                         "without a nominal model: deadband, dead_time, saturation, external_oscillation, drift, "
                         "quantization, ...) instead of the screen's residual-line test; ~10-80 s per such loop")
+    s.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
@@ -309,17 +330,19 @@ def build_parser():
     g.add_argument("--ts", type=float, default=None,
                    help="sampling time (s) (default: the nominal model's, else the file's t column)")
     g.add_argument("--name", default=None, help=_NAME_HELP)
+    g.add_argument("--decimate", type=_whole, default=1, metavar="K",
+                   help=_DECIMATE_HELP + "; not with --model, which is written for the record's own sampling time")
     g.set_defaults(func=cmd_diagnose)
     return p
 
 
-def _max_delay(text: str) -> int:
+def _whole(text: str) -> int:
     try:
         n = int(text)
     except ValueError:
         n = 0
     if n < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive whole number of samples, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text!r}")
     return n
 
 

@@ -9,6 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._checks import is_count
+
 
 class Loop(eqx.Module):
     """One control loop's record, as the estimators take it.
@@ -86,6 +88,40 @@ def stack(loops: Sequence[Loop], length: int | None = None) -> Loop:
         mask=jnp.stack([lp.mask for lp in padded]),
         ts=jnp.stack([jnp.asarray(lp.ts) for lp in padded]),
     )
+
+
+def decimation_factor(factor: object) -> int:
+    """`factor` as an `int`, or a `ValueError` when it is not a positive integer."""
+    if not is_count(factor, 1):
+        raise ValueError(f"the decimation factor must be a positive integer, got {factor!r}")
+    return int(factor)
+
+
+def decimate(loop: Loop, factor: int) -> Loop:
+    """`loop` at a `factor` times longer sampling time: the means of `factor`
+    consecutive samples.
+
+    For a record sampled much faster than its loop moves (the estimators' delays,
+    ARX orders and prediction horizons count samples; see the README's *Known
+    limitations*). Block means keep OP and PV aligned with each other and average
+    the measurement noise down; a valve's slip is kept as a jump spread over at most
+    two samples (a low-pass filter before picking every `factor`-th sample would
+    smear it over the filter's length). A trailing part shorter than `factor` is
+    dropped, and a block that reaches into padding is padding (`mask` 0). `ts` is
+    multiplied by `factor`; `factor` 1 returns `loop` itself.
+
+    **Raises:** `ValueError` when `factor` is not a positive integer.
+    """
+    factor = decimation_factor(factor)
+    if factor == 1:
+        return loop
+    n = loop.op.shape[-1] // factor * factor
+
+    def blocks(x):
+        return x[..., :n].reshape(*x.shape[:-1], n // factor, factor)
+
+    return Loop(op=blocks(loop.op).mean(-1), pv=blocks(loop.pv).mean(-1),
+                mask=blocks(loop.mask).min(-1), ts=loop.ts * factor)
 
 
 def unstack(batch: Loop) -> list[Loop]:

@@ -242,15 +242,18 @@ def _unique_name(name: str, path: Path, taken: set) -> str:
 
 
 def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings(),
-               recursive: bool = False):
+               recursive: bool = False, decimate: int = 1):
     """Read and check every loop under `paths` (files and folders, their subfolders
     too with `recursive`; a `.mat` file, or a CSV file with tagged columns, may hold
     several loops: see [`jaxstiction.list_loops`][]). Returns `(items,
     errors, warned)`: `(name, file, op, pv, ts)` tuples ready to fit, error entries
     (one line each) for the loops that cannot be, and the
     [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name. Names
-    are unique: a name met again gets its folder in front (`unit2/FC101`)."""
+    are unique: a name met again gets its folder in front (`unit2/FC101`). Every
+    record is decimated by `decimate` (see [`jaxstiction.decimate`][]) before it is
+    checked."""
     from ._checks import LoopDataWarning
+    from ._loop import decimate as decimated
     from ._read import find_loop_files, list_loops, loop_name, read_loop
     from ._report import checked
 
@@ -270,7 +273,7 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
             try:
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", LoopDataWarning)
-                    loop = read_loop(path, ts=ts, name=sub)
+                    loop = decimated(read_loop(path, ts=ts, name=sub), decimate)
                 op, pv = checked(np.asarray(loop.op), np.asarray(loop.pv), name, settings.estimate)
                 items.append((name, str(path), op, pv, float(loop.ts)))
                 said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
@@ -521,7 +524,8 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
 
 def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
            ts: float | None = None, progress: bool = False, scheduler: Any = None,
-           pictures: bool = False, diagnose: bool = False, recursive: bool = False) -> ScreenReport:
+           pictures: bool = False, diagnose: bool = False, recursive: bool = False,
+           decimate: int = 1) -> ScreenReport:
     """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
     for sticky valves, and name the cause of the others.
 
@@ -541,6 +545,9 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
       chunk becomes one task on the cluster (with `diagnose`, each diagnosis too).
     - `pictures`: keep the arrays each loop's picture needs (`figure`).
     - `recursive`: also the loop files in the folders' subfolders.
+    - `decimate`: screen every record at a `decimate` times longer sampling time
+      (the means of that many samples; [`jaxstiction.decimate`][]), for records
+      sampled much faster than their loops move.
     - `diagnose`: name the cause of the loops not called sticky by the full
       diagnosis (`diagnose_causes`).
 
@@ -548,7 +555,10 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
 
     **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
     """
-    items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive)
+    from ._loop import decimation_factor
+
+    decimate = decimation_factor(decimate)  # a bad factor fails before any file is read
+    items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate)
     with contextlib.ExitStack() as client_scope:
         if scheduler is not None:  # one client for both stages
             scheduler = client_scope.enter_context(_dask_client(scheduler))[0]

@@ -81,10 +81,27 @@ def test_unreadable_and_missing_file(tmp_path):
     _assert_one_line_error(run("fit", str(tmp_path / "nope.csv")), "nope.csv")
 
 
-@pytest.mark.parametrize("cmd", ["fit", "screen"])
-def test_max_delay_must_be_a_positive_count(tmp_path, cmd):
-    res = run(cmd, str(tmp_path / "x.csv"), "--max-delay", "0")
-    assert res.returncode == 2 and "--max-delay" in res.stderr and "positive whole number" in res.stderr
+@pytest.mark.parametrize("cmd,option", [("fit", "--max-delay"), ("screen", "--max-delay"), ("fit", "--decimate"),
+                                        ("screen", "--decimate"), ("diagnose", "--decimate")])
+def test_counts_must_be_positive(tmp_path, cmd, option):
+    res = run(cmd, str(tmp_path / "x.csv"), option, "0")
+    assert res.returncode == 2 and option in res.stderr and "positive whole number" in res.stderr
+
+
+def test_decimate_shortens_the_record(tmp_path):
+    """`--decimate 10` fits the block means: 800 samples become 80, too short (so
+    nothing is fitted), and the log says the record was decimated; with a nominal
+    model `diagnose` refuses it in one line."""
+    op, pv = _good()
+    f = _csv(tmp_path / "x.csv", op, pv)
+    res = run("fit", str(f), "--decimate", "10", "--json")
+    _assert_one_line_error(res, "at least")
+    assert "fit: x: 80 samples, Ts = 10 s (decimated by 10)" in res.stderr
+    nominal = tmp_path / "nominal.json"
+    nominal.write_text(json.dumps({"Ts": 1.0, "process": {"b": [0, 0.5], "a": [1, -0.5], "delay": 0},
+                                   "op_offset": 50.0, "pv_offset": 0.0, "valve": {"model": "linear"}}))
+    _assert_one_line_error(run("diagnose", str(f), "--model", str(nominal), "--decimate", "2"),
+                           "--decimate cannot be used with --model")
 
 
 def test_fit_json_contract_on_chem23(isdb, tmp_path):

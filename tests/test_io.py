@@ -563,6 +563,31 @@ def test_unstack_round_trips():
     assert unstack(stack(loops[:1]))[0].op.shape == (50,)
 
 
+def test_decimate_takes_block_means():
+    """Against a loop over blocks: the means of `k` samples, `ts` times `k`, a ragged
+    tail dropped; on a stacked batch a block reaching into padding is padding."""
+    loops = _loops()  # 50, 80 and 65 samples
+    for lp in loops:
+        d = js.decimate(lp, 3)
+        n = lp.op.shape[0] // 3
+        ref_op = [float(np.mean(np.asarray(lp.op)[3 * i:3 * i + 3])) for i in range(n)]
+        ref_pv = [float(np.mean(np.asarray(lp.pv)[3 * i:3 * i + 3])) for i in range(n)]
+        np.testing.assert_allclose(d.op, ref_op, rtol=1e-12)
+        np.testing.assert_allclose(d.pv, ref_pv, rtol=1e-12)
+        assert d.mask.shape == (n,) and float(d.mask.min()) == 1.0 and float(d.ts) == 3 * float(lp.ts)
+    batch = js.decimate(js.stack(loops), 3)
+    assert batch.op.shape == (3, 26)
+    np.testing.assert_array_equal(batch.mask.sum(axis=1), [16, 26, 21])  # 50 // 3, 80 // 3, 65 // 3
+    np.testing.assert_array_equal(batch.ts, [3.0, 6.0, 1.5])
+    for i, lp in enumerate(loops):
+        n = lp.op.shape[0] // 3
+        np.testing.assert_allclose(batch.op[i, :n], js.decimate(lp, 3).op, rtol=1e-12)
+    assert js.decimate(loops[0], 1) is loops[0]
+    for bad in (0, -2, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="decimation factor must be a positive integer"):
+            js.decimate(loops[0], bad)
+
+
 def test_stack_empty():
     with pytest.raises(ValueError, match="empty"):
         js.stack([])

@@ -159,6 +159,25 @@ def test_read_items_reads_every_tag_of_a_historian_export(tmp_path):
     np.testing.assert_allclose(items[0][3], pv[0])
 
 
+def test_read_items_decimates_every_record(tmp_path):
+    """`decimate=k`: every record at k times the sampling time (block means); a bad
+    factor fails before any file is read."""
+    from jaxstiction import screen
+    from jaxstiction._screen import read_items
+
+    rng = np.random.default_rng(3)
+    op, pv = 50 + rng.normal(0, 1, 4002), rng.normal(0, 1, 4002)
+    _csv(tmp_path / "FC1.csv", op, pv)
+    (item,), errors, _ = read_items([tmp_path], decimate=4)
+    assert not errors and item[2].shape == (1000,) and item[4] == 4.0  # the last 2 samples dropped
+    np.testing.assert_allclose(item[2], op[:4000].reshape(1000, 4).mean(1))
+    np.testing.assert_allclose(item[3], pv[:4000].reshape(1000, 4).mean(1))
+    items, errors, _ = read_items([tmp_path], decimate=16)  # 250 samples: too short, that loop's error
+    assert not items and "FC1" in errors[0]["name"] and "at least" in errors[0]["status"]
+    with pytest.raises(ValueError, match="decimation factor"):
+        screen([tmp_path / "missing"], decimate=0)
+
+
 def test_residual_line_finds_a_sinusoid():
     rng = np.random.default_rng(0)
     t = np.arange(1500)
