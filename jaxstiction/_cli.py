@@ -185,7 +185,9 @@ def cmd_screen(args):
 
 
 def _diagnosis_text(name, d) -> str:
-    lines = [f"loop {name}: verdict {d.verdict}" + (f" (runner-up: {d.runner_up})" if d.runner_up else ""),
+    also = [e for e in d.accepted if e != d.verdict]
+    lines = [f"loop {name}: verdict {d.verdict}" + "".join(f", with {e}" for e in also)
+             + (f" (runner-up: {d.runner_up})" if d.runner_up else ""),
              f"  nominal model on held-out data: fitness {d.heldout_nominal['fitness']:.2f} %"]
     for f in d.findings:
         if not f.accepted:

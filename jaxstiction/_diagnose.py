@@ -97,9 +97,17 @@ class Diagnosis(eqx.Module):
     n_estimation: int = eqx.field(static=True)
     series: dict
 
+    @property
+    def accepted(self) -> tuple[str, ...]:
+        """The accepted effects, the verdict's first (a second block proven on top of
+        it, e.g. an external oscillation beside stiction, follows; quantisation,
+        named from the PV lattice, too)."""
+        return tuple(f.effect for f in self.findings if f.accepted)
+
     def to_json(self) -> dict:
         return {
             "verdict": self.verdict,
+            "accepted": list(self.accepted),
             "findings": [f.to_json() for f in self.findings],
             "runner_up": self.runner_up,
             "located": self.located,
@@ -216,12 +224,14 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             findings = [stiction_j if f.effect == "stiction" else
                         deadband_j if f.effect == "deadband" and deadband_j is not None else f for f in findings]
     findings, ordered = _accepted_in_order(findings, g, s)
-    verdict, model, runner = "none", s.base_model, None
+    verdict, model = "none", s.base_model
     if ordered:
         verdict, model = ordered[0].effect, ordered[0].model
-        runner = ordered[1].effect if len(ordered) > 1 else None
     if verdict in INPUT_FAMILIES:  # two effects: does an external oscillation remain?
-        findings, model, runner = _second_oscillation(b, g, s, proof, settings, ordered[0], findings, runner, say)
+        findings, model = _second_oscillation(b, g, s, proof, settings, ordered[0], findings, say)
+    # the runner-up: the best other explanation, not a block the diagnosed model holds
+    claimed = {f.effect for f in findings if f.accepted}
+    runner = next((f.effect for f in ordered[1:] if f.effect not in claimed), None)
     if ordered:
         findings = _alternatives(findings, ordered[0])
     quant = _quantisation(b.pv, float(np.std((b.pv - s.base_sim)[:b.n_est])))
@@ -386,10 +396,9 @@ def _alternatives(findings: list[Finding], first: Finding) -> list[Finding]:
 
 
 def _second_oscillation(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof, settings: DiagnoseSettings,
-                        first: Finding, findings: list[Finding], runner, say):
+                        first: Finding, findings: list[Finding], say):
     """Does an external oscillation remain once the best input block (`first`) is in?
-    Returns the findings (with the second block's, accepted or not), the model and
-    the runner-up."""
+    Returns the findings (with the second block's, accepted or not) and the model."""
     verdict, model = first.effect, first.model
     i_osc = s.names.index("external_oscillation")
     zw = b.pv - np.asarray(_jit_scored(model, b.opj, b.pvj, b.whole)[0])
@@ -411,7 +420,7 @@ def _second_oscillation(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
     p2 = min(1.0, len(s.names) * _normal_sf((T2 - s.mean[i_osc]) / s.std[i_osc]))
     say(f"an oscillation on top of {verdict}: period {1.0 / f[k]:.1f} samples, statistic {T2:.1f}, p {p2:.4f}")
     if p2 > settings.alpha:
-        return findings, model, runner
+        return findings, model
     before = proof.before
     amp, Pk, ph = _fit_sinusoid(zw, b.n_est, 1.0 / f[k])
     both = _add_output(model, Sinusoid(amp, Pk, ph))
@@ -436,8 +445,7 @@ def _second_oscillation(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
         findings = [f_ for f_ in findings if not (f_.effect == "external_oscillation" and "with" not in
                                                   f_.parameters)]
         model = both
-        runner = "external_oscillation"
-    return findings, model, runner
+    return findings, model
 
 
 def _not_identifiable(verdict: str, findings, given: bool) -> tuple[str, ...]:

@@ -463,8 +463,7 @@ def diagnose_entry(entry: dict, op, pv, ts, settings, *, enable_x64: bool = Fals
         d = diagnose(make_loop(op, pv, ts), None, settings)
     except Exception as e:  # noqa: BLE001 - a failed diagnosis costs only this loop's cause
         return _noted(r, f"diagnose failed, cause from the screen: {_one_line(e)}")
-    r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up,
-                      "accepted": [f.effect for f in d.findings if f.accepted]}
+    r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up, "accepted": list(d.accepted)}
     if d.verdict == "stiction":
         return _noted(r, "diagnose names stiction, which the screen's held-out test did not confirm; "
                          "cause from the screen")

@@ -199,6 +199,9 @@ def test_stiction_beside_an_external_oscillation():
     accepted = [f for f in d.findings if f.accepted]
     assert [f.effect for f in accepted] == ["stiction", "external_oscillation"]
     assert accepted[1].parameters["with"] == "stiction"
+    # both are claimed, so the oscillation is not the runner-up (an alternative is)
+    assert d.accepted == ("stiction", "external_oscillation") and d.to_json()["accepted"] == list(d.accepted)
+    assert d.runner_up not in d.accepted
     alternatives = [f for f in d.findings if "alternative_to" in f.evidence]
     assert alternatives and all(f.evidence["alternative_to"] == "stiction" and not f.accepted
                                 and f.evidence["significant"] for f in alternatives)

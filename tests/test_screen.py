@@ -100,7 +100,7 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
         verdict = {1.0: "deadband", 3.0: "stiction", 4.0: None}[float(loop.ts)]
         if verdict is None:
             raise ValueError("boom")
-        return type("D", (), {"verdict": verdict, "runner_up": "drift",
+        return type("D", (), {"verdict": verdict, "runner_up": "drift", "accepted": (verdict,),
                               "findings": (Found(verdict, True), Found("drift", False))})()
 
     monkeypatch.setattr(_diagnose, "diagnose", fake)
