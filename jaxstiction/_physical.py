@@ -22,6 +22,11 @@ from ._reduce import LowOrder
 from ._spline import scale_input
 
 
+# Bytes per record sample that one output-error fit of the final stage holds while it
+# runs (its Jacobian, simulations and solver state); measured with XLA's memory
+# analysis of `estimate`, see `PhysicalSettings.memory_budget`.
+FIT_BYTES_PER_SAMPLE = 400
+
 class PhysicalSettings(eqx.Module):
     """Static settings of the physical (Kano) fit.
 
@@ -39,7 +44,9 @@ class PhysicalSettings(eqx.Module):
     - `refine_S`: S points of the stage-2 grid; `polish_starts`, `line`, `rounds`:
       alternating fine line searches in S and J from that many stage-2 points.
     - `chunk`, `memory_budget`: grid points evaluated at once (at most `chunk`, and
-      fewer when their regressors would exceed `memory_budget` bytes).
+      fewer when their regressors would exceed `memory_budget` bytes); the
+      output-error fits of the final stage, too, run as many at once as fit in
+      `memory_budget` (all of them on records up to ~3000 samples).
     - `arx_order`: order of the least-squares (ARX) linear part of the grid
       criterion. The noise is coloured, so an ARX criterion is biased; a high order
       approximates the Box-Jenkins model (the paper's argument for its order-10 ARX).
@@ -367,7 +374,12 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
         return (m, cd), jnp.where(jnp.isfinite(v), v, jnp.inf), res
 
     K, F = Sf.shape
-    (models, noises), v, res = jax.vmap(fine)(Sf.ravel(), Jf.ravel(), jnp.repeat(delay_k, F), jnp.repeat(c0, F))
+    # As many fits at once as the memory budget allows (all of them on records of a
+    # few thousand samples): each holds Jacobians and simulations of the record's
+    # length, ~FIT_BYTES_PER_SAMPLE bytes per sample.
+    fits = int(max(1, settings.memory_budget // (FIT_BYTES_PER_SAMPLE * op.shape[0])))
+    (models, noises), v, res = chunked_vmap(
+        fine, (Sf.ravel(), Jf.ravel(), jnp.repeat(delay_k, F), jnp.repeat(c0, F)), fits)
     kbest = jnp.argmin(jnp.min(v.reshape(K, F), axis=1))
     sel = kbest * F + jnp.arange(F)
     models, noises, res = jax.tree.map(lambda t: t[sel], (models, noises, res))
@@ -395,8 +407,8 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
         Jw = jnp.minimum(jnp.clip(j0[kbest] + span * hj * jnp.tile(rr, settings.final), 0.0, None), Sw)
         # 15 Levenberg-Marquardt steps: the losses, not the models, are needed here
         # (within 7e-5 of a 100-step fit on 1500-sample loops, see `_screen`)
-        _, vw, _ = jax.vmap(lambda *a: fine(*a, steps=min(15, settings.oe_steps)))(
-            Sw, Jw, jnp.full((F,), delay), jnp.full((F,), start))
+        _, vw, _ = chunked_vmap(lambda *a: fine(*a, steps=min(15, settings.oe_steps)),
+                                (Sw, Jw, jnp.full((F,), delay), jnp.full((F,), start)), fits)
         gS, gJ, gv = jnp.concatenate([Sf, Sw]), jnp.concatenate([Jf, Jw]), jnp.concatenate([v, vw])
         ghs = jnp.concatenate([ghs, jnp.full_like(Sw, span * hs)])
         ghj = jnp.concatenate([ghj, jnp.full_like(Jw, span * hj)])

@@ -13,7 +13,7 @@ from jaxstiction._estimate import min_length
 from jaxstiction._filters import freq_response, lfilter
 from jaxstiction._hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
 from jaxstiction._linalg import is_stable
-from jaxstiction._physical import _arx_design, arx_loss, fit_physical, valve_from
+from jaxstiction._physical import _arx_design, arx_loss, FIT_BYTES_PER_SAMPLE, fit_physical, valve_from
 from jaxstiction._reduce import fit_noise_model, LowOrder, reduce_model, welch
 from jaxstiction._scenarios import nominal_model, p_experiment, paper_experiment
 
@@ -107,16 +107,21 @@ def test_spline_candidates_equal_single_candidate_calls(sticky):
 def test_physical_fit_finds_s_and_j(sticky):
     """Kano S, J recovered near the truth (10, 2) on a 600-sample noisy loop. The
     wider interval grid (`interval_span`) changes only the intervals: the same point
-    and loss as without it, intervals that contain the narrow ones, and here the truth."""
+    and loss as without it, intervals that contain the narrow ones, and here the truth.
+    A memory budget that splits the grid and the final output-error fits into
+    chunks (as on a long record) changes nothing."""
     op, y, u = sticky
     w = jnp.ones_like(y)
     fits = []
-    for span in (4.0, 0.0):
+    for span, budget in ((4.0, 10**8), (0.0, 10**8), (4.0, 4 * 600 * FIT_BYTES_PER_SAMPLE)):
         pset = js.PhysicalSettings(num_S=31, num_J=6, starts=3, refine=7, refine_S=21, final=3, line=11, rounds=1,
-                                   polish_starts=2, init_count=3, oe_steps=20, interval_span=span)
+                                   polish_starts=2, init_count=3, oe_steps=20, interval_span=span,
+                                   memory_budget=budget)
         fitted = jax.jit(lambda op, y, w, lo, hi: fit_physical(op, y, w, lo, hi, pset))
         fits.append(fitted(op, y, w, op.min(), op.max()))
-    fit, narrow = fits
+    fit, narrow, chunked = fits
+    for name in ("S", "J", "v_oe", "S_interval", "J_interval"):
+        np.testing.assert_allclose(getattr(chunked, name), getattr(fit, name), rtol=1e-12)
     assert abs(float(fit.S) - 10.0) < 0.6
     assert abs(float(fit.J) - 2.0) < 0.8
     for name in ("S", "J", "v_oe"):
