@@ -229,11 +229,11 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         verdict, model = ordered[0].effect, ordered[0].model
     if verdict in INPUT_FAMILIES:  # two effects: does an external oscillation remain?
         findings, model = _second_oscillation(b, g, s, proof, settings, ordered[0], findings, say)
+    if ordered:
+        findings = _alternatives(findings, ordered[0])
     # the runner-up: the best other explanation, not a block the diagnosed model holds
     claimed = {f.effect for f in findings if f.accepted}
     runner = next((f.effect for f in ordered[1:] if f.effect not in claimed), None)
-    if ordered:
-        findings = _alternatives(findings, ordered[0])
     quant = _quantisation(b.pv, float(np.std((b.pv - s.base_sim)[:b.n_est])))
     if quant is not None:
         findings.append(Finding("quantization", quant, {

@@ -206,6 +206,7 @@ def test_stiction_beside_an_external_oscillation():
     assert alternatives and all(f.evidence["alternative_to"] == "stiction" and not f.accepted
                                 and f.evidence["significant"] for f in alternatives)
     assert "alternative_to" in d.findings[len(accepted)].evidence  # ranked right after what is claimed
+    assert d.runner_up == d.findings[len(accepted)].effect  # the best alternative is the runner-up
 
 
 def test_the_larger_likelihood_ratio_ranks_the_input_blocks():
