@@ -22,8 +22,9 @@ from ._blocks import Kano
 from ._criteria import family_criteria, foe, score, ScoreSettings, simulate_scored
 from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinModel, SplineSettings
 from ._loop import Loop
+from ._misc import chunked_vmap
 from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
-from ._physical import fit_oe, fit_physical, PhysicalSettings, valve_from
+from ._physical import FIT_BYTES_PER_SAMPLE, fit_oe, fit_physical, PhysicalSettings, valve_from
 from ._reduce import fit_noise_model
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 
@@ -429,7 +430,9 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         xs = jnp.concatenate([xs, scale_input(x_db, lo, hi)])
         wbs = jnp.concatenate([wbs, wb_db])
         ds = jnp.concatenate([ds, jnp.full((len(DEADBAND_WIDTHS),), delay_ph)])
-    null_fits, v_null = jax.vmap(oe_at)(xs, wbs, ds)
+    # as many at once as the memory budget allows (all of them up to ~30 000 samples)
+    fits = int(max(1, pset.memory_budget // (FIT_BYTES_PER_SAMPLE * N)))
+    null_fits, v_null = chunked_vmap(oe_at, (xs, wbs, ds), fits)
     bl = jnp.argmin(v_null[:L])
     m_lin = as_model(jax.tree.map(lambda t: t[bl], null_fits), v_null[bl], none)
     dof_lin = 2 * pset.order + 1
