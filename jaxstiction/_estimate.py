@@ -24,7 +24,7 @@ from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinMod
 from ._loop import Loop
 from ._misc import chunked_vmap
 from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
-from ._physical import FIT_BYTES_PER_SAMPLE, fit_oe, fit_physical, PhysicalSettings, valve_from
+from ._physical import fit_oe, fit_physical, fits_at_once, PhysicalSettings, valve_from
 from ._reduce import fit_noise_model
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 
@@ -431,8 +431,7 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         wbs = jnp.concatenate([wbs, wb_db])
         ds = jnp.concatenate([ds, jnp.full((len(DEADBAND_WIDTHS),), delay_ph)])
     # as many at once as the memory budget allows (all of them up to ~30 000 samples)
-    fits = int(max(1, pset.memory_budget // (FIT_BYTES_PER_SAMPLE * N)))
-    null_fits, v_null = chunked_vmap(oe_at, (xs, wbs, ds), fits)
+    null_fits, v_null = chunked_vmap(oe_at, (xs, wbs, ds), fits_at_once(N, pset.memory_budget))
     bl = jnp.argmin(v_null[:L])
     m_lin = as_model(jax.tree.map(lambda t: t[bl], null_fits), v_null[bl], none)
     dof_lin = 2 * pset.order + 1

@@ -27,6 +27,13 @@ from ._spline import scale_input
 # analysis of `estimate`, see `PhysicalSettings.memory_budget`.
 FIT_BYTES_PER_SAMPLE = 400
 
+
+def fits_at_once(length: int, memory_budget: int) -> int:
+    """How many output-error fits of a `length`-sample record run side by side within
+    `memory_budget` bytes (at least one)."""
+    return int(max(1, memory_budget // (FIT_BYTES_PER_SAMPLE * length)))
+
+
 class PhysicalSettings(eqx.Module):
     """Static settings of the physical (Kano) fit.
 
@@ -46,7 +53,7 @@ class PhysicalSettings(eqx.Module):
     - `chunk`, `memory_budget`: grid points evaluated at once (at most `chunk`, and
       fewer when their regressors would exceed `memory_budget` bytes); the
       output-error fits of the final stage, too, run as many at once as fit in
-      `memory_budget` (all of them on records up to ~3000 samples).
+      `memory_budget` (all 75 of the defaults on records up to ~3300 samples).
     - `arx_order`: order of the least-squares (ARX) linear part of the grid
       criterion. The noise is coloured, so an ARX criterion is biased; a high order
       approximates the Box-Jenkins model (the paper's argument for its order-10 ARX).
@@ -377,7 +384,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     # As many fits at once as the memory budget allows (all of them on records of a
     # few thousand samples): each holds Jacobians and simulations of the record's
     # length, ~FIT_BYTES_PER_SAMPLE bytes per sample.
-    fits = int(max(1, settings.memory_budget // (FIT_BYTES_PER_SAMPLE * op.shape[0])))
+    fits = fits_at_once(op.shape[0], settings.memory_budget)
     (models, noises), v, res = chunked_vmap(
         fine, (Sf.ravel(), Jf.ravel(), jnp.repeat(delay_k, F), jnp.repeat(c0, F)), fits)
     kbest = jnp.argmin(jnp.min(v.reshape(K, F), axis=1))
