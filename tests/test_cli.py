@@ -104,6 +104,21 @@ def test_decimate_shortens_the_record(tmp_path):
                            "--decimate cannot be used with --model")
 
 
+def test_long_record_note(tmp_path):
+    """A record longer than `LONG_RECORD` is announced with its cost and the way to
+    shorten it before any fitting (here the fit then stops at the constant OP); a
+    shorter one is not."""
+    from jaxstiction._cli import LONG_RECORD
+
+    n = LONG_RECORD + 10
+    f = _csv(tmp_path / "long.csv", np.full(n, 50.0), np.sin(np.arange(n) / 50.0))
+    res = run("fit", str(f), "--json")
+    _assert_one_line_error(res, "constant")
+    assert f"fit: note: {n} samples is a long record" in res.stderr and "--decimate K" in res.stderr
+    res = run("fit", str(f), "--decimate", "2", "--json")
+    assert "long record" not in res.stderr and res.returncode == 2
+
+
 def test_fit_json_contract_on_chem23(isdb, tmp_path):
     """CHEM23 by the paper's protocol (validated on its estimation data; the paper
     reports 75.67 %, >= 77 % is asked), through the command line's JSON contract."""
