@@ -24,7 +24,7 @@ from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinMod
 from ._loop import Loop
 from ._misc import chunked_vmap
 from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
-from ._physical import fit_oe, fit_physical, fits_at_once, PhysicalSettings, valve_from
+from ._physical import fit_oe, fit_physical, fits_at_once, PhysicalFit, PhysicalSettings, valve_from
 from ._reduce import fit_noise_model
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 
@@ -266,6 +266,34 @@ def choose_family(bics, fitness_estimation):
     return jnp.argmin(jnp.where(eligible & ~jnp.isnan(bics), bics, jnp.inf))
 
 
+class Prepared(eqx.Module):
+    """The record as `estimate`'s stages use it (`_prepare`): OP and PV with
+    non-finite samples zeroed, the mask, the estimation and held-out weights and
+    counts, the OP range and PV scaling, the scaled `y` and `u`, the direction
+    threshold and rules `H`, and the data checks."""
+
+    op: Array
+    pv: Array
+    mask: Array
+    bad: Array
+    n_est: Array
+    n_val: Array
+    w_est: Array
+    w_val: Array
+    count: Array
+    lo: Array
+    hi: Array
+    const_op: Array
+    mu: Array
+    sd: Array
+    const_pv: Array
+    too_short: Array
+    y: Array
+    u: Array
+    thr: Array
+    H: Array
+
+
 def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     r"""Identify the valve and the process of one loop from OP and PV.
 
@@ -286,10 +314,25 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
         Enable float64 (`jax.config.update("jax_enable_x64", True)`) for
         identification; the library never changes that setting itself.
     """
+    p = _prepare(loop, settings)
+    cand = _spline_stage(p, settings)
+    phys = None
+    if settings.use_physical:
+        # Run the physical stage after the spline stage, not beside it: two
+        # independent branches of batched LAPACK calls running at once can deadlock
+        # XLA's CPU runtime (jaxlib 0.10, 2 cores: ParallelBatchMap waits on a pool
+        # whose workers are all blocked). The barrier only orders the work.
+        op_p, y_p, _ = jax.lax.optimization_barrier((p.op, p.y, cand.foe))
+        phys = _physical_stage(eqx.tree_at(lambda q: (q.op, q.y), p, (op_p, y_p)), settings)
+    return _finish(p, cand, phys, settings)
+
+
+def _prepare(loop: Loop, settings: Settings) -> Prepared:
+    """The first stage of `estimate`: the record cleaned, split and scaled, and its
+    data checks (arrays by name, for the stages after it)."""
     dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
     op0, pv0 = jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype)
     mask = jnp.asarray(loop.mask, dtype)
-    N = op0.shape[0]
     finite = jnp.isfinite(op0) & jnp.isfinite(pv0)
     bad = jnp.any(~finite & (mask > 0))
     op = jnp.where(finite, op0, 0.0)
@@ -318,18 +361,40 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     thr = noise_threshold(u, w_est, factor=settings.robust_factor)
     thr = jnp.where(jnp.isfinite(thr) & (thr > 0), thr, 1e-12)
     H = jnp.stack([direction(u), direction(u, threshold=thr)])
+    return Prepared(op=op, pv=pv, mask=mask, bad=bad, n_est=n_est, n_val=n_val, w_est=w_est, w_val=w_val,
+                    count=count, lo=lo, hi=hi, const_op=const_op, mu=mu, sd=sd, const_pv=const_pv,
+                    too_short=too_short, y=y, u=u, thr=thr, H=H)
 
-    # ------------------------------------------------------------ spline family
+
+def _spline_stage(p: Prepared, settings: Settings):
+    """The spline candidates of `estimate` (its heaviest stage but one)."""
+    sset = settings.spline
+    y, u, H, w_est, mask = p.y, p.u, p.H, p.w_est, p.mask
+    if settings.use_spline:
+        return fit_spline_candidates(y, u, H, w_est, mask, sset)
+    # no spline family: a placeholder of the same shapes (NaN criteria, so it is
+    # never chosen), computing nothing
+    shapes = jax.eval_shape(lambda: fit_spline_candidates(y, u, H, w_est, mask, sset))
+    return jax.tree.map(
+        lambda t: jnp.full(t.shape, jnp.nan if jnp.issubdtype(t.dtype, jnp.floating) else 0, t.dtype), shapes)
+
+
+def _physical_stage(p: Prepared, settings: Settings) -> PhysicalFit:
+    """The Kano model's search and fits of `estimate` (its heaviest stage)."""
+    return fit_physical(p.op, p.y, p.w_est, p.lo, p.hi, settings.physical)
+
+
+def _finish(p: Prepared, cand, phys: PhysicalFit | None, settings: Settings) -> LoopFit:
+    """The rest of `estimate` from its stages' results: the chosen candidates, the
+    verdict's null models, every score, the choice between the families and the
+    result code. (`phys` is `None` without the physical family.)"""
+    op, pv, y, u, thr, H = p.op, p.pv, p.y, p.u, p.thr, p.H
+    w_est, w_val, count, n_est, n_val = p.w_est, p.w_val, p.count, p.n_est, p.n_val
+    lo, hi, mu, sd = p.lo, p.hi, p.mu, p.sd
+    dtype = y.dtype
+    N = op.shape[0]
     sset = settings.spline
     D = sset.max_delay
-    if settings.use_spline:
-        cand = fit_spline_candidates(y, u, H, w_est, mask, sset)
-    else:
-        # no spline family: a placeholder of the same shapes (NaN criteria, so it is
-        # never chosen), computing nothing
-        shapes = jax.eval_shape(lambda: fit_spline_candidates(y, u, H, w_est, mask, sset))
-        cand = jax.tree.map(
-            lambda t: jnp.full(t.shape, jnp.nan if jnp.issubdtype(t.dtype, jnp.floating) else 0, t.dtype), shapes)
     foe_grid = jnp.where(jnp.isfinite(cand.foe), cand.foe, jnp.inf)
     K = foe_grid.shape[1]
     flat = jnp.argmin(foe_grid.ravel())
@@ -372,12 +437,6 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     # ---------------------------------------------------------- physical family
     if settings.use_physical:
         pset = settings.physical
-        # Run the physical stage after the spline stage, not beside it: two
-        # independent branches of batched LAPACK calls running at once can deadlock
-        # XLA's CPU runtime (jaxlib 0.10, 2 cores: ParallelBatchMap waits on a pool
-        # whose workers are all blocked). The barrier only orders the work.
-        op_p, y_p, _ = jax.lax.optimization_barrier((op, y, cand.foe))
-        phys = fit_physical(op_p, y_p, w_est, lo, hi, pset)
         pb, pa = phys.model.linear.polynomials(pset.max_delay)
         c_n, d_n = phys.noise
         m_phys = _loop_model(Kano(phys.S, phys.J), SplineValve.linear(lo, hi, M, dtype), pb, pa, phys.model.offset,
@@ -520,10 +579,10 @@ def _estimate(loop: Loop, settings: Settings = Settings()) -> LoopFit:
     xk = Kano(S, J)(op)
     never = physical & jnp.all(jnp.where(w_est > 0, xk == xk[0], True))
     result = RESULTS.where(never, RESULTS.valve_never_moves, solver)
-    result = RESULTS.where(const_pv, RESULTS.constant_pv, result)
-    result = RESULTS.where(const_op, RESULTS.constant_op, result)
-    result = RESULTS.where(too_short, RESULTS.too_short, result)
-    result = RESULTS.where(bad, RESULTS.nonfinite_data, result)
+    result = RESULTS.where(p.const_pv, RESULTS.constant_pv, result)
+    result = RESULTS.where(p.const_op, RESULTS.constant_op, result)
+    result = RESULTS.where(p.too_short, RESULTS.too_short, result)
+    result = RESULTS.where(p.bad, RESULTS.nonfinite_data, result)
 
     i32 = jnp.int32
     return LoopFit(
