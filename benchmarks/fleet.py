@@ -3,6 +3,7 @@
     python benchmarks/fleet.py                     # fleets of 8 and 24 loops
     python benchmarks/fleet.py --small 8 --large 1024
     python benchmarks/fleet.py --json
+    python benchmarks/fleet.py --threads 1         # one batched call at a time
 
 Simulated 1500-sample loops (the paper's process; half with Kano stiction, half
 with a linear valve; half following a GBN setpoint, half a setpoint that rarely moves), screened
@@ -49,10 +50,10 @@ def fleet(count, offset=0, n=1500):
     return loops, truth
 
 
-def timed(count, offset):
+def timed(count, offset, settings=ScreenSettings()):
     loops, truth = fleet(count, offset)
     t0 = time.perf_counter()
-    res = screen_loops(loops)
+    res = screen_loops(loops, settings)
     return time.perf_counter() - t0, res, truth
 
 
@@ -60,11 +61,14 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--small", type=int, default=8)
     p.add_argument("--large", type=int, default=24)
+    p.add_argument("--threads", type=int, default=0,
+                   help="batched calls at once (ScreenSettings.threads; 0: one per CPU core)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    t_warm, _, _ = timed(ScreenSettings().chunk, 10 * (args.small + args.large))  # compiles
-    t_small, r1, tr1 = timed(args.small, 0)
-    t_large, r2, tr2 = timed(args.large, args.small)
+    settings = ScreenSettings(threads=args.threads)
+    t_warm, _, _ = timed(ScreenSettings().chunk, 10 * (args.small + args.large), settings)  # compiles
+    t_small, r1, tr1 = timed(args.small, 0, settings)
+    t_large, r2, tr2 = timed(args.large, args.small, settings)
     marginal = (t_large - t_small) / (args.large - args.small)
     truth = {**tr1, **tr2}
     res = r1 + r2
@@ -74,7 +78,7 @@ def main():
     tnr = np.mean([not r["stiction_detected"] for r in neg])
     out = dict(seconds_warm_up=t_warm, small=args.small, large=args.large, seconds_small=t_small, seconds_large=t_large,
                marginal_seconds_per_loop=marginal, ok=sum(r["status"] == "ok" for r in res), loops=len(res),
-               balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()),
+               balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()), threads=args.threads,
                failed={r["name"]: r["status"] for r in res if r["status"] != "ok"})
     if args.json:
         print(json.dumps(out))

@@ -23,6 +23,7 @@ import os
 import sys
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import as_completed, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -87,15 +88,20 @@ class ScreenSettings(eqx.Module):
       estimator); `verdict`: [`jaxstiction.VerdictSettings`][].
     - `chunk`: at most this many loops per batched call; `samples_per_call`: fewer
       when `chunk` × bucket length would exceed it (memory grows with both).
+    - `threads`: batched calls run at once, each on its own thread (0: one per CPU
+      core). XLA's CPU backend runs one call's work on one core at a time, so a
+      second call in flight uses a second core; memory grows with the calls in
+      flight. (Without a Dask scheduler.)
     """
 
     estimate: Settings = SCREEN_ESTIMATE
     verdict: VerdictSettings = VerdictSettings()
     chunk: int = eqx.field(static=True, default=2)
     samples_per_call: int = eqx.field(static=True, default=8000)
+    threads: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
-        check_counts(self, positive=("chunk", "samples_per_call"))
+        check_counts(self, positive=("chunk", "samples_per_call"), nonnegative=("threads",))
 
 
 def bucket_length(n: int) -> int:
@@ -340,13 +346,33 @@ def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
     if scheduler is not None:
         return _run_dask(chunks, settings, progress, scheduler, pictures)
     devices = jax.local_devices()
-    out = []
-    for k, (length, size, members) in enumerate(chunks):
+    threads = settings.threads or os.cpu_count() or 1
+    done: list[list[dict]] = [[] for _ in chunks]
+
+    def one(k):
+        length, size, members = chunks[k]
         dev = devices[k % len(devices)] if len(devices) > 1 else None
-        out += run_chunk(members, length, size, settings, pictures=pictures, device=dev)
-        if progress is not None:
-            progress(len(members))
-    return out
+        done[k] = run_chunk(members, length, size, settings, pictures=pictures, device=dev)
+        return len(members)
+
+    # A bucket's first chunk runs alone (its call compiles the bucket's program
+    # once); the bucket's other chunks then run `threads` at a time.
+    with ThreadPoolExecutor(threads) as pool:
+        k = 0
+        while k < len(chunks):
+            shape = chunks[k][:2]
+            rest = k + 1
+            while rest < len(chunks) and chunks[rest][:2] == shape:
+                rest += 1
+            n = one(k)
+            if progress is not None:
+                progress(n)
+            for f in as_completed([pool.submit(one, i) for i in range(k + 1, rest)]):
+                n = f.result()
+                if progress is not None:
+                    progress(n)
+            k = rest
+    return [r for part in done for r in part]
 
 
 @contextlib.contextmanager

@@ -3,6 +3,7 @@ spectral test, ranking and report files, the CLI contract, and a real Dask
 LocalCluster giving the single-process results."""
 
 import csv
+import dataclasses
 import html
 import json
 
@@ -398,3 +399,14 @@ def test_dask_local_cluster_matches_single_process(fleet, screened):
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         rep = js.screen(folder, SCREEN, scheduler=client)
     assert rep.to_json() == screened.to_json()
+
+
+def test_threads_give_what_one_call_at_a_time_gives(fleet):
+    """Batched calls run `threads` at a time (one loop per call here: a bucket's first
+    call alone, the other two at once) give exactly the entries, in the same order,
+    of one call at a time."""
+    folder, _, _ = fleet
+    one = dataclasses.replace(SCREEN, chunk=1, threads=1)
+    assert js.screen(folder, dataclasses.replace(one, threads=2)).to_json() == js.screen(folder, one).to_json()
+    with pytest.raises(ValueError, match="threads"):
+        js.ScreenSettings(threads=-1)
