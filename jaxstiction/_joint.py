@@ -18,6 +18,7 @@ import numpy as np
 
 from ._estimate import estimate
 from ._loop import make_loop
+from ._misc import thread_map
 from ._proof import _bootstrap_noise, _jit_scored, _null_tail, _prove, _revised, Finding
 from ._verdict import usable
 
@@ -73,7 +74,8 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
     say(f"joint stiction fit: bootstrap of {reps} whole refits")
     noise = _bootstrap_noise(fit.linear.noise.c, fit.linear.noise.d, pv - lin_sim, n_est,
                              jr.fold_in(jr.key(settings.seed), 7919), reps, len(op))
-    Tb = np.asarray([statistics(fb) for fb in (call(op, lin_sim + v) for v in noise) if bool(usable(fb.result))])
+    fits = thread_map(lambda v: call(op, lin_sim + v), noise)
+    Tb = np.asarray([statistics(fb) for fb in fits if bool(usable(fb.result))])
     Tb = Tb.reshape(-1, 4)
 
     def judge(effect, i, model, params, extra, slips=True):

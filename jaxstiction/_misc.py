@@ -2,6 +2,7 @@
 
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -55,6 +56,20 @@ def release_programs_near_map_limit(share: float = 0.5) -> bool:
         return False
     jax.clear_caches()
     return True
+
+
+def thread_map(f, items, threads: int = 0) -> list:
+    """`[f(x) for x in items]`, the first call alone (it compiles what the others
+    reuse), the rest `threads` at a time (0: one per CPU core). XLA's CPU backend
+    runs one call's work on one core at a time, so a second call in flight uses a
+    second core. `f` must be safe to call from several threads (a JAX function
+    is)."""
+    items = list(items)
+    if not items:
+        return []
+    first = f(items[0])
+    with ThreadPoolExecutor(threads or os.cpu_count() or 1) as pool:
+        return [first, *pool.map(f, items[1:])]
 
 
 def chunked_vmap(f, args, chunk: int):

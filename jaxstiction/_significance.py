@@ -34,7 +34,7 @@ from ._drift import drift_test
 from ._filters import lagged, lfilter
 from ._linalg import lstsq
 from ._locate import locate
-from ._misc import release_programs_near_map_limit
+from ._misc import release_programs_near_map_limit, thread_map
 from ._models import LinearProcess, LoopModel, NoiseModel
 from ._proof import _bootstrap_noise, _jit_scored, _normal_sf, _null_tail
 
@@ -239,7 +239,7 @@ def _significance(b: _Baseline, g: _Grid, settings: DiagnoseSettings, say) -> _S
 
     say(f"bootstrap: {settings.bootstrap} replicates")
     pv_boot = _bootstrap_noise(b.c0, b.d0, b.pv - base_sim, b.n_est, jr.key(settings.seed), settings.bootstrap, b.n)
-    T_boot = [g.stats((jnp.asarray(base_sim + v) - b.mu) / b.sy)[0] for v in pv_boot]
+    T_boot = thread_map(lambda v: g.stats((jnp.asarray(base_sim + v) - b.mu) / b.sy)[0], pv_boot)
     names = list(T_obs)
     Tb = np.array([[tb.get(f, np.nan) for f in names] for tb in T_boot])  # (B, F)
     med = np.median(Tb, axis=0)
