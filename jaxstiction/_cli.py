@@ -163,13 +163,13 @@ def cmd_fit(args):
 
 
 def screen_settings(args):
-    """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`)."""
+    """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`)."""
     from ._screen import FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE, ScreenSettings
 
     estimate = FULL_SEARCH_ESTIMATE if args.full_search else SCREEN_ESTIMATE
     if args.max_delay is not None:
         estimate = estimate.with_max_delay(args.max_delay)
-    return ScreenSettings(estimate=estimate)
+    return ScreenSettings(estimate=estimate, threads=args.threads or 0)
 
 
 def cmd_screen(args):
@@ -339,6 +339,9 @@ def build_parser():
                         "without a nominal model: deadband, dead_time, saturation, external_oscillation, drift, "
                         "quantization, ...) instead of the screen's residual-line test; ~10-80 s per such loop")
     s.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
+    s.add_argument("--threads", type=_whole, default=None, metavar="N",
+                   help="batched fits running at once, each on one core (default: one per CPU core; "
+                        "memory grows with N)")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
