@@ -340,7 +340,7 @@ def build_parser():
                         "quantization, ...) instead of the screen's residual-line test; ~10-80 s per such loop")
     s.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
     s.add_argument("--threads", type=_whole, default=None, metavar="N",
-                   help="batched fits running at once, each on one core (default: one per CPU core; "
+                   help="batched fits running at once, each on one core (default: one per CPU core, at most 8; "
                         "memory grows with N)")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],

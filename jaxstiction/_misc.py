@@ -58,9 +58,19 @@ def release_programs_near_map_limit(share: float = 0.5) -> bool:
     return True
 
 
+# Calls in flight by default: one per CPU core, at most this many (each holds its own
+# buffers, so memory grows with them)
+MAX_THREADS = 8
+
+
+def default_threads(threads: int = 0) -> int:
+    """`threads`, or for 0 one per CPU core up to `MAX_THREADS`."""
+    return threads or max(1, min(os.cpu_count() or 1, MAX_THREADS))
+
+
 def thread_map(f, items, threads: int = 0) -> list:
     """`[f(x) for x in items]`, the first call alone (it compiles what the others
-    reuse), the rest `threads` at a time (0: one per CPU core). XLA's CPU backend
+    reuse), the rest `threads` at a time (0: `default_threads`). XLA's CPU backend
     runs one call's work on one core at a time, so a second call in flight uses a
     second core. `f` must be safe to call from several threads (a JAX function
     is)."""
@@ -68,7 +78,7 @@ def thread_map(f, items, threads: int = 0) -> list:
     if not items:
         return []
     first = f(items[0])
-    with ThreadPoolExecutor(threads or os.cpu_count() or 1) as pool:
+    with ThreadPoolExecutor(default_threads(threads)) as pool:
         return [first, *pool.map(f, items[1:])]
 
 

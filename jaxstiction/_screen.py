@@ -34,7 +34,7 @@ import numpy as np
 from ._checks import check_counts
 from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
-from ._misc import json_number as _r, release_freed_memory
+from ._misc import default_threads, json_number as _r, release_freed_memory
 from ._physical import PhysicalSettings
 from ._verdict import CAUSES, usable, verdict, VerdictSettings
 
@@ -89,7 +89,7 @@ class ScreenSettings(eqx.Module):
     - `chunk`: at most this many loops per batched call; `samples_per_call`: fewer
       when `chunk` × bucket length would exceed it (memory grows with both).
     - `threads`: batched calls run at once, each on its own thread (0: one per CPU
-      core). XLA's CPU backend runs one call's work on one core at a time, so a
+      core, at most 8). XLA's CPU backend runs one call's work on one core at a time, so a
       second call in flight uses a second core; memory grows with the calls in
       flight. (Without a Dask scheduler.)
     """
@@ -346,7 +346,7 @@ def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
     if scheduler is not None:
         return _run_dask(chunks, settings, progress, scheduler, pictures)
     devices = jax.local_devices()
-    threads = settings.threads or os.cpu_count() or 1
+    threads = default_threads(settings.threads)
     done: list[list[dict]] = [[] for _ in chunks]
 
     def one(k):

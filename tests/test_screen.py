@@ -410,3 +410,15 @@ def test_threads_give_what_one_call_at_a_time_gives(fleet):
     assert js.screen(folder, dataclasses.replace(one, threads=2)).to_json() == js.screen(folder, one).to_json()
     with pytest.raises(ValueError, match="threads"):
         js.ScreenSettings(threads=-1)
+
+
+def test_default_threads(monkeypatch):
+    """One call in flight per CPU core, at most `MAX_THREADS`, unless asked."""
+    from jaxstiction import _misc
+
+    monkeypatch.setattr(_misc.os, "cpu_count", lambda: 64)
+    assert _misc.default_threads() == _misc.MAX_THREADS and _misc.default_threads(3) == 3
+    monkeypatch.setattr(_misc.os, "cpu_count", lambda: None)
+    assert _misc.default_threads() == 1
+    assert _misc.thread_map(lambda x: x * x, range(5), threads=2) == [0, 1, 4, 9, 16]
+    assert _misc.thread_map(abs, []) == []
