@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import math
 import os
 import sys
+import threading
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import as_completed, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,7 @@ import numpy as np
 from ._checks import check_counts
 from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
-from ._misc import default_threads, json_number as _r, release_freed_memory
+from ._misc import json_number as _r, release_freed_memory, thread_map
 from ._physical import PhysicalSettings
 from ._verdict import CAUSES, usable, verdict, VerdictSettings
 
@@ -346,33 +347,23 @@ def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
     if scheduler is not None:
         return _run_dask(chunks, settings, progress, scheduler, pictures)
     devices = jax.local_devices()
-    threads = default_threads(settings.threads)
-    done: list[list[dict]] = [[] for _ in chunks]
+    lock = threading.Lock()
 
-    def one(k):
-        length, size, members = chunks[k]
+    def one(indexed):
+        k, (length, size, members) = indexed
         dev = devices[k % len(devices)] if len(devices) > 1 else None
-        done[k] = run_chunk(members, length, size, settings, pictures=pictures, device=dev)
-        return len(members)
+        out = run_chunk(members, length, size, settings, pictures=pictures, device=dev)
+        if progress is not None:
+            with lock:
+                progress(len(members))
+        return out
 
-    # A bucket's first chunk runs alone (its call compiles the bucket's program
-    # once); the bucket's other chunks then run `threads` at a time.
-    with ThreadPoolExecutor(threads) as pool:
-        k = 0
-        while k < len(chunks):
-            shape = chunks[k][:2]
-            rest = k + 1
-            while rest < len(chunks) and chunks[rest][:2] == shape:
-                rest += 1
-            n = one(k)
-            if progress is not None:
-                progress(n)
-            for f in as_completed([pool.submit(one, i) for i in range(k + 1, rest)]):
-                n = f.result()
-                if progress is not None:
-                    progress(n)
-            k = rest
-    return [r for part in done for r in part]
+    # bucket by bucket: its first chunk alone (the call compiles the bucket's
+    # program once), the others `settings.threads` at a time
+    out = []
+    for _, bucket in itertools.groupby(enumerate(chunks), key=lambda kc: kc[1][:2]):
+        out += [r for part in thread_map(one, bucket, settings.threads) for r in part]
+    return out
 
 
 @contextlib.contextmanager
