@@ -224,6 +224,8 @@ def main():
                         f"({', '.join(PLANT_TYPES)})")
     p.add_argument("--max-delay", type=int, default=None, metavar="N",
                    help="try process dead times of 1..N samples (Settings.with_max_delay; default 3)")
+    p.add_argument("--threads", type=int, default=0, metavar="N",
+                   help="batched calls run at once (as `jaxstiction screen --threads`; 0: one per core)")
     args = p.parse_args()
     settings = screen_settings(args)  # as `jaxstiction screen [--full-search] [--max-delay N]`
     processes = args.processes.split(",")
