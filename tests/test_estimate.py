@@ -195,8 +195,9 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
 def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     """`fit`'s on-disk cache of exported `estimate` programs: the first call exports
     and saves, a new process (here: the in-memory table cleared) loads the file
-    without tracing `estimate` again, a corrupt file is rebuilt, and every route
-    gives what `estimate` gives. (With the screen's profile, the smaller program: the
+    without tracing `estimate` again, a corrupt file is rebuilt, without the cache
+    the programs are kept in memory and nothing is written, and every route gives
+    what `estimate` gives. (With the screen's profile, the smaller program: the
     cache does not depend on the settings.)"""
     from jaxstiction import _programs
 
@@ -219,8 +220,13 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
         assert exports == [1]
     finally:
         _programs.use_program_cache(None)
+    # without the cache (the API's `fit`): the same programs, kept in memory only
+    monkeypatch.setattr(_programs, "_loaded", {})
+    files = sorted(tmp_path.iterdir())
+    in_memory = _programs.estimate_cached(loops[0], NO_SPLINE)
+    assert exports == [1, 1] and sorted(tmp_path.iterdir()) == files and len(_programs._loaded) == 1
     reference = _programs.simulations_of(no_spline, loops[0].op, loops[0].pv, loops[0].mask, NO_SPLINE.score)
-    for got, sims in (first, loaded, rebuilt):
+    for got, sims in (first, loaded, rebuilt, in_memory):
         for sim, ref in zip(sims, reference):
             np.testing.assert_allclose(sim, ref, rtol=1e-9, atol=1e-9)
         for name in ("fitness", "fitness_linear", "fitness_deadband", "S", "J", "band_percent"):
