@@ -311,7 +311,7 @@ def build_parser():
     d.set_defaults(func=cmd_demo)
     f = sub.add_parser("fit", parents=[common], help="fit one loop (CSV with OP, PV; or .mat)")
     f.add_argument("file", help="the loop's record: CSV with OP and PV columns (t, SP optional), or MATLAB .mat")
-    f.add_argument("--validate", type=_fraction(zero=True), default=1 / 3, metavar="FRACTION",
+    f.add_argument("--validate", type=float, default=1 / 3, metavar="FRACTION",
                    help="hold out the last FRACTION for validation (default 1/3; 0: validate on the estimation data)")
     f.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
     f.add_argument("--name", default=None, help=_NAME_HELP)
@@ -348,7 +348,7 @@ def build_parser():
     g.add_argument("file", help="the loop's record: CSV with OP and PV columns (t, SP optional), or MATLAB .mat")
     g.add_argument("--model", metavar="NOMINAL.json", default=None,
                    help="nominal model (JSON); without it a linear-valve model is fitted first")
-    g.add_argument("--holdout", type=_fraction(zero=False), default=1 / 3, metavar="FRACTION",
+    g.add_argument("--holdout", type=float, default=1 / 3, metavar="FRACTION",
                    help="held-out fraction at the end (default 1/3)")
     g.add_argument("--bootstrap", type=int, default=39, metavar="N",
                    help="parametric bootstrap replicates (default 39)")
@@ -359,20 +359,6 @@ def build_parser():
                    help=_DECIMATE_HELP + "; not with --model, which is written for the record's own sampling time")
     g.set_defaults(func=cmd_diagnose)
     return p
-
-
-def _fraction(zero: bool):
-    """The option type of a held-out fraction: in [0, 1) (`zero`) or (0, 1)."""
-    def parse(text: str) -> float:
-        try:
-            x = float(text)
-        except ValueError:
-            x = math.nan
-        if not ((0.0 <= x) if zero else (0.0 < x)) or not x < 1.0:
-            raise argparse.ArgumentTypeError(f"must be a fraction in {'[' if zero else '('}0, 1), got {text!r}")
-        return x
-
-    return parse
 
 
 def _whole(text: str) -> int:

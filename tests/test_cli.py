@@ -88,16 +88,6 @@ def test_counts_must_be_positive(tmp_path, cmd, option):
     assert res.returncode == 2 and option in res.stderr and "positive whole number" in res.stderr
 
 
-@pytest.mark.parametrize("cmd,option,value", [("fit", "--validate", "1.5"), ("fit", "--validate", "-0.1"),
-                                              ("fit", "--validate", "half"), ("diagnose", "--holdout", "1")])
-def test_fractions_are_checked_before_the_file_is_read(tmp_path, cmd, option, value):
-    """A held-out fraction outside its range is refused by the option parser, before
-    the record is read or anything is logged."""
-    res = run(cmd, str(tmp_path / "x.csv"), option, value)
-    assert res.returncode == 2 and option in res.stderr and "fraction" in res.stderr
-    assert "x.csv" not in res.stderr and "fitting" not in res.stderr
-
-
 def test_decimate_shortens_the_record(tmp_path):
     """`--decimate 10` fits the block means: 800 samples become 80, too short (so
     nothing is fitted), and the log says the record was decimated; with a nominal
