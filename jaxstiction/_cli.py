@@ -145,6 +145,8 @@ def cmd_fit(args):
     from ._read import loop_name, read_loop
     from ._report import fit
 
+    if not 0.0 <= args.validate < 1.0:  # bad options fail before the record is read
+        raise ValueError(f"`--validate` must be a fraction in [0, 1), got {args.validate:g}")
     loop = decimate(read_loop(args.file, ts=args.ts, name=args.name), args.decimate)
     name = args.name if args.name is not None else loop_name(args.file)
     op, pv, ts = np.asarray(loop.op), np.asarray(loop.pv), float(loop.ts)

@@ -88,6 +88,15 @@ def test_counts_must_be_positive(tmp_path, cmd, option):
     assert res.returncode == 2 and option in res.stderr and "positive whole number" in res.stderr
 
 
+@pytest.mark.parametrize("value", ["1.5", "-0.1", "nan"])
+def test_validate_is_checked_before_the_file_is_read(tmp_path, value):
+    """A held-out fraction outside [0, 1) is refused in one line naming the option,
+    before the record is read (the file does not exist) or anything is logged."""
+    res = run("fit", str(tmp_path / "x.csv"), "--validate", value)
+    _assert_one_line_error(res, "--validate")
+    assert "x.csv" not in res.stderr and "fitting" not in res.stderr
+
+
 def test_decimate_shortens_the_record(tmp_path):
     """`--decimate 10` fits the block means: 800 samples become 80, too short (so
     nothing is fitted), and the log says the record was decimated; with a nominal
