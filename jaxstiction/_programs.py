@@ -225,11 +225,11 @@ def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFi
             entry = _export(loop, settings)
         except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
             return estimate(loop, settings), None
-        try:
-            if path is not None:
+        if path is not None:
+            try:
                 _save(path, *entry)
-        except Exception:  # e.g. a read-only cache or no `flatbuffers`: not saved
-            pass
+            except Exception:  # e.g. a read-only cache or no `flatbuffers`: not saved
+                pass
     programs, skeletons = entry
     # compiled apart from the run, so that what the compiler freed can be handed
     # back before the run's buffers are allocated (see `release_freed_memory`)
