@@ -249,7 +249,7 @@ def cmd_diagnose(args):
          + (f", nominal model {args.model}" if args.model else ", no nominal model: fitting a linear-valve one"))
     _long_record_note("diagnose", int(loop.op.shape[0]), args.decimate)
     t0 = time.time()
-    d = diagnose(loop, nominal, settings, progress=lambda m: _log(f"diagnose: {m}"))
+    d = diagnose(loop, nominal, settings, progress=lambda m: _log(f"diagnose: {m}"), name=name)
     _log(f"diagnose: done in {time.time() - t0:.1f} s")
     if args.out:
         from ._plots import write_diagnosis_figures

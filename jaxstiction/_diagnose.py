@@ -198,18 +198,19 @@ def _ranked(accepted: list[Finding]) -> list[Finding]:
 
 
 def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
-             progress=None) -> Diagnosis:
+             progress=None, *, name: str = "loop") -> Diagnosis:
     """Diagnose the mismatch between `nominal` (default: a linear-valve model fitted
     here) and the recorded loop; see the module docstring for the method.
 
     **Arguments:** `loop`: a [`jaxstiction.Loop`][] (unbatched; masked samples are
     dropped); `nominal`: a [`jaxstiction.LoopModel`][]; `settings`:
-    `DiagnoseSettings`; `progress`: optional callable taking a message.
+    `DiagnoseSettings`; `progress`: optional callable taking a message; `name`:
+    the loop's name, which prefixes data errors.
 
     **Returns:** a `Diagnosis`. Raises `ValueError` (one line) on bad data.
     """
     say = progress or (lambda msg: None)
-    b = _baseline(loop, nominal, settings, say)
+    b = _baseline(loop, nominal, settings, say, name)
     g = _Grid.build(b, settings)
     s = _significance(b, g, settings, say)
     say("refitting the significant candidates")

@@ -477,7 +477,7 @@ def diagnose_entry(entry: dict, op, pv, ts, settings, *, enable_x64: bool = Fals
     _DIAGNOSED_LENGTH[0] = n
     r = dict(entry)
     try:
-        d = diagnose(make_loop(op, pv, ts), None, settings)
+        d = diagnose(make_loop(op, pv, ts), None, settings, name=str(r.get("name", "loop")))
     except Exception as e:  # noqa: BLE001 - a failed diagnosis costs only this loop's cause
         return _noted(r, f"diagnose failed, cause from the screen: {_one_line(e)}")
     r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up, "accepted": list(d.accepted)}

@@ -88,7 +88,7 @@ class _Baseline:
                          pv_offset=self.mu + self.sy * th[self.nb], output=tuple(self.nominal.output))
 
 
-def _baseline(loop, nominal, settings: DiagnoseSettings, say) -> _Baseline:
+def _baseline(loop, nominal, settings: DiagnoseSettings, say, name: str = "loop") -> _Baseline:
     """Check the record, fit a linear-valve nominal when none is given, locate the
     mismatch and set up the refits (see `_Baseline`)."""
     from ._checks import check_loop
@@ -96,7 +96,7 @@ def _baseline(loop, nominal, settings: DiagnoseSettings, say) -> _Baseline:
     if np.ndim(loop.op) != 1:
         raise ValueError("diagnose takes one loop, not a batch")
     mask = np.asarray(loop.mask) > 0
-    op, pv = check_loop(np.asarray(loop.op)[mask], np.asarray(loop.pv)[mask], name="loop", min_length=300)
+    op, pv = check_loop(np.asarray(loop.op)[mask], np.asarray(loop.pv)[mask], name=name, min_length=300)
     op, pv = np.asarray(op, float), np.asarray(pv, float)
     n = len(op)
     n_est = int(round((1 - settings.holdout) * n))

@@ -393,6 +393,8 @@ def test_bad_input_one_line():
     loop = sc.full.loop
     with pytest.raises(ValueError, match="constant"):
         js.diagnose(js.make_loop(np.full(3000, 40.0), np.asarray(loop.pv)), sc.nominal, FAST)
+    with pytest.raises(ValueError, match="^P0-seed-0: .*constant"):  # the name prefixes the message
+        js.diagnose(js.make_loop(np.full(3000, 40.0), np.asarray(loop.pv)), sc.nominal, FAST, name="P0-seed-0")
     with pytest.raises(ValueError, match="too short|at least"):
         js.diagnose(js.make_loop(np.asarray(loop.op)[:250], np.asarray(loop.pv)[:250]), sc.nominal, FAST)
 
@@ -409,6 +411,11 @@ def test_bad_settings_are_named(field, value, named):
 def test_cli_diagnose_bad_option_one_line(tmp_path, option, value):
     f = _csv(tmp_path / "x.csv", np.linspace(0.0, 1.0, 400), np.linspace(0.0, 1.0, 400))
     _assert_one_line_error(run("diagnose", str(f), option, value, "--json"), option[2:])
+
+
+def test_cli_diagnose_names_the_file_in_a_data_error(tmp_path):
+    f = _csv(tmp_path / "flat.csv", np.full(400, 50.0), np.linspace(0.0, 1.0, 400))
+    _assert_one_line_error(run("diagnose", str(f), "--json"), "error: flat: `OP` is constant")
 
 
 def test_cli_diagnose_json(tmp_path):
