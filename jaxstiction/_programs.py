@@ -22,20 +22,22 @@ float64 switch, the settings and the record's shape; anything that fails to load
 rebuilt, and anything that fails to save is only a missed speed-up. The library's
 `estimate` never touches the disk: only [`jaxstiction.fit`][] uses this, and it
 writes to disk only when the application has called `use_program_cache`. Without
-it the four programs are kept in memory, so API calls of `fit` also run the two
-stages side by side (`fit` of CHEM23 in one process, one run each: first call 38.4
-→ 32.5 s, later calls 6.9-8.1 → 6.2-6.3 s, peak memory 0.98 → 0.87 GB; the same
-JSON).
+it the four programs are kept in memory (for the four record shapes and settings
+used last), so API calls of `fit` also run the two stages side by side (`fit` of
+CHEM23 in one process, one run each: first call 38.4 → 32.5 s, later calls
+6.9-8.1 → 6.2-6.3 s, peak memory 0.98 → 0.87 GB; the same JSON).
 """
 
 from __future__ import annotations
 
+import collections
 import functools
 import hashlib
 import os
 import pathlib
 import pickle
 import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
@@ -58,7 +60,9 @@ from ._misc import release_freed_memory
 
 
 _where: pathlib.Path | None = None
-_loaded: dict = {}  # key -> (jitted call, skeleton), for later calls in this process
+_loaded: collections.OrderedDict = collections.OrderedDict()  # key -> (compiled, skeletons), most recent last
+_lock = threading.Lock()
+_KEEP = 4  # programs kept in memory: a process fitting many record lengths must not grow without bound
 
 
 def use_program_cache(path: str | os.PathLike | None):
@@ -211,8 +215,12 @@ def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFi
     when the application has enabled the cache; the same results. Where JAX cannot
     export them, `estimate` itself and no `simulations` (`None`)."""
     key = _key(loop, settings)
-    if key in _loaded:
-        return _run(*_loaded[key], loop)
+    with _lock:  # `fit` may be called from several threads
+        hit = _loaded.get(key)
+        if hit is not None:
+            _loaded.move_to_end(key)
+    if hit is not None:
+        return _run(*hit, loop)
     path = None if _where is None else _where / f"estimate-{key}.jaxexport"
     entry = None
     if path is not None and path.exists():
@@ -235,5 +243,8 @@ def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFi
     # back before the run's buffers are allocated (see `release_freed_memory`)
     compiled = _compiled(programs)
     release_freed_memory()
-    _loaded[key] = (compiled, skeletons)
-    return _run(*_loaded[key], loop)
+    with _lock:
+        _loaded[key] = (compiled, skeletons)
+        while len(_loaded) > _KEEP:  # the least recently used shape goes
+            _loaded.popitem(last=False)
+    return _run(compiled, skeletons, loop)

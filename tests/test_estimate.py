@@ -2,6 +2,7 @@
 the fit itself, the batched contract (vmap over padded loops == single calls),
 padding invariance, no retracing, data codes under vmap, the host API."""
 
+import collections
 import dataclasses
 
 import equinox as eqx
@@ -203,7 +204,7 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
 
     # (the suite's conftest turns on XLA's persistent compilation cache, as the
     # command line does, so the loaded and the rebuilt program are not compiled again)
-    monkeypatch.setattr(_programs, "_loaded", {})
+    monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict())
     _programs.use_program_cache(tmp_path)
     try:
         first = _programs.estimate_cached(loops[0], NO_SPLINE)
@@ -211,20 +212,23 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
         exports = []
         real_export = _programs._export
         monkeypatch.setattr(_programs, "_export", lambda *a: exports.append(1) or real_export(*a))
-        monkeypatch.setattr(_programs, "_loaded", {})
+        monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict())
         loaded = _programs.estimate_cached(loops[0], NO_SPLINE)
         assert exports == []
         path.write_bytes(b"not a program")
-        monkeypatch.setattr(_programs, "_loaded", {})
+        monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict())
         rebuilt = _programs.estimate_cached(loops[0], NO_SPLINE)
         assert exports == [1]
     finally:
         _programs.use_program_cache(None)
-    # without the cache (the API's `fit`): the same programs, kept in memory only
-    monkeypatch.setattr(_programs, "_loaded", {})
+    # without the cache (the API's `fit`): the same programs, kept in memory only,
+    # and only for the most recently used shapes (here one: a stale entry goes)
+    monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict(stale=None))
+    monkeypatch.setattr(_programs, "_KEEP", 1)
     files = sorted(tmp_path.iterdir())
     in_memory = _programs.estimate_cached(loops[0], NO_SPLINE)
-    assert exports == [1, 1] and sorted(tmp_path.iterdir()) == files and len(_programs._loaded) == 1
+    assert exports == [1, 1] and sorted(tmp_path.iterdir()) == files
+    assert list(_programs._loaded) == [_programs._key(loops[0], NO_SPLINE)]
     reference = _programs.simulations_of(no_spline, loops[0].op, loops[0].pv, loops[0].mask, NO_SPLINE.score)
     for got, sims in (first, loaded, rebuilt, in_memory):
         for sim, ref in zip(sims, reference):
