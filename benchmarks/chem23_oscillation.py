@@ -13,7 +13,7 @@
    one-step and k-step prediction errors.
 """
 
-import sys
+import argparse
 from pathlib import Path
 
 import jax
@@ -41,7 +41,10 @@ def band_power(x, period, width=0.15):
 
 def main():
     default = Path(__file__).resolve().parents[2] / "shared/data/isdb/CHEM23.csv"
-    path = Path(sys.argv[1]) if len(sys.argv) > 1 else default
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("path", nargs="?", type=Path, default=default, metavar="CHEM23.csv",
+                   help="the loop file (default: CHEM23 in ../shared/data/isdb beside the repository)")
+    path = p.parse_args().path
     loop = read_loop(path)
     op, pv = np.asarray(loop.op), np.asarray(loop.pv)
     n = len(op)

@@ -7,7 +7,7 @@ linear-valve model and of the diagnosed one, and the time. The contributors'
 labels (where the data set gives them) are not used by the method.
 """
 
-import sys
+import argparse
 import time
 from pathlib import Path
 
@@ -20,7 +20,10 @@ from jaxstiction import diagnose, find_loop_files, read_loop  # noqa: E402
 
 
 def main():
-    paths = sys.argv[1:] or [Path(__file__).resolve().parents[2] / "shared/data/isdb"]
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("paths", nargs="*", type=Path, metavar="FOLDER_OR_FILE",
+                   help="loop files or folders (default: ../shared/data/isdb beside the repository)")
+    paths = p.parse_args().paths or [Path(__file__).resolve().parents[2] / "shared/data/isdb"]
     for path in find_loop_files(paths):
         t = time.time()
         try:

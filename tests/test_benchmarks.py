@@ -1,0 +1,41 @@
+"""The benchmark scripts still start: each parses `--help`, and one screens a loop.
+
+The scripts are not run in full here (minutes each); these checks catch what broke
+`calibrate_verdict.py` for a session unnoticed: a script whose options fell out of
+step with the library it calls."""
+
+import pathlib
+import runpy
+import sys
+
+import pytest
+
+
+BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPTS = sorted(p.name for p in BENCHMARKS.glob("*.py") if not p.name.startswith("_"))
+
+
+def _run(monkeypatch, script, *argv):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))  # the scripts import `_args` from there
+    monkeypatch.setattr(sys, "argv", [str(BENCHMARKS / script), *argv])
+    runpy.run_path(str(BENCHMARKS / script), run_name="__main__")
+
+
+def test_every_script_is_listed():
+    assert len(SCRIPTS) >= 9 and "calibrate_verdict.py" in SCRIPTS
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_script_help(script, monkeypatch, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        _run(monkeypatch, script, "--help")
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage:") and script in out
+
+
+def test_calibrate_verdict_screens_a_loop(monkeypatch, capsys):
+    # one healthy loop through the screen's settings as the script builds them
+    _run(monkeypatch, "calibrate_verdict.py", "--seeds", "0", "--kinds", "none")
+    out = capsys.readouterr().out
+    assert "balanced accuracy" in out and "none-0" in out
