@@ -120,9 +120,11 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
                            "J": [round(float(x), 4) for x in np.asarray(fit.J_interval)]}}
     # ranked against the grid families by the likelihood ratio against the linear
     # valve, as theirs are
-    stiction = judge("stiction", 0, fit.physical, params,
-                     {"rank_score": round(lr(fit.physical, fit.linear) - 4, 3), "slip_statistic": round(lr_slip, 3)},
-                     slips)
+    extra = {"rank_score": round(lr(fit.physical, fit.linear) - 4, 3), "slip_statistic": round(lr_slip, 3)}
+    if lr_slip < 0:  # the Kano point estimate is not the best Kano valve (README, Known limitations)
+        extra["slip_note"] = ("negative: the Kano fit (the smallest S of its 95 % region) fits the estimation data "
+                              "worse than its own J = 0 member, the deadband fit; no evidence of a slip")
+    stiction = judge("stiction", 0, fit.physical, params, extra, slips)
     if stiction is None:
         return None
     if stiction.accepted:  # J significant and the Kano valve proven: no deadband beside it
