@@ -90,14 +90,15 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
     results = [{**base, "name": "a"}, {**base, "name": "b", "stiction_detected": True, "cause": "stiction"},
                {**base, "name": "c", "cause": "external_oscillation", "note": "earlier"},
                {**base, "name": "d"}, {"name": "e", "status": "too short", "stiction_detected": False}]
-    seen = []
+    seen, names = [], []
 
     class Found:
         def __init__(self, effect, accepted):
             self.effect, self.accepted = effect, accepted
 
-    def fake(loop, nominal, settings):
+    def fake(loop, nominal, settings, name="loop"):
         seen.append((int(loop.op.shape[0]), float(loop.ts), nominal))
+        names.append(name)
         verdict = {1.0: "deadband", 3.0: "stiction", 4.0: None}[float(loop.ts)]
         if verdict is None:
             raise ValueError("boom")
@@ -114,6 +115,7 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
                                       dashboard_address=None) as cluster, distributed.Client(cluster) as client:
             out = diagnose_causes(results, items, progress=ticks.append, scheduler=client)
     assert sorted(seen) == [(n, 1.0, None), (n, 3.0, None), (n, 4.0, None)] and ticks == [1, 1, 1]
+    assert sorted(names) == ["a", "c", "d"]  # a data error would name the loop
     a, b, c, d, e = out
     assert a["cause"] == "deadband" and a["diagnosis"] == {"verdict": "deadband", "runner_up": "drift",
                                                           "accepted": ["deadband"]}
