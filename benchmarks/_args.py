@@ -2,8 +2,22 @@
 
 
 def seeds_arg(text):
-    """`--seeds` values: `"0-9"` (a range, both ends included) or `"1,4,7"`."""
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(v) for v in text.split(",")]
+    """`--seeds` values: ranges (both ends included) and single seeds, comma-separated:
+    `"0-9"`, `"1,4,7"` or `"0-19,30-39"`."""
+    seeds = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return seeds
+
+
+def seeds_text(seeds):
+    """The inverse of `seeds_arg`: `[0, 1, 2, 5]` -> `"0-2,5"`."""
+    parts, i = [], 0
+    while i < len(seeds):
+        j = i
+        while j + 1 < len(seeds) and seeds[j + 1] == seeds[j] + 1:
+            j += 1
+        parts.append(f"{seeds[i]}-{seeds[j]}" if j > i else f"{seeds[i]}")
+        i = j + 1
+    return ",".join(parts)

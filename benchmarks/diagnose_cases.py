@@ -32,7 +32,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.random as jr  # noqa: E402
-from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 from jaxstiction import (  # noqa: E402
     ActuatorLag,
@@ -198,7 +198,7 @@ def main():
         extra = f" (false discoveries {r['false_discovery']:.0%})" if c == "P0" else ""
         print(f"| {c} | {EXPECTED[base(c)]} | {r['right']}/{r['n']}{extra} | {r['median_gain']:+.2f} | "
               f"{r['median_seconds']:.1f} |")
-    print(f"\nseeds {args.seeds[0]}..{args.seeds[-1]}, {summary['total_seconds']:.0f} s")
+    print(f"\nseeds {seeds_text(args.seeds)}, {summary['total_seconds']:.0f} s")
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 from jaxstiction._blocks import Kano  # noqa: E402
 from jaxstiction._candidates import _loop_model  # noqa: E402
@@ -181,7 +181,7 @@ def main():
     else:
         n = len(rows)
         print(
-            f"\n{n} seeds ({args.seeds[0]}..{args.seeds[-1]}): noise-free min {summary['noise_free_min']:.2f} %, "
+            f"\n{n} seeds ({seeds_text(args.seeds)}): noise-free min {summary['noise_free_min']:.2f} %, "
             f"median {summary['noise_free_median']:.2f} %, >= 95 %: {summary['noise_free_ge95']}/{n}, "
             f">= 85 %: {summary['noise_free_ge85']}/{n}; within 2 of ceiling: {summary['within_2_of_ceiling']}/{n} "
             f"(largest gap {summary['gap_max']:.2f}); S within 1: {summary['S_within_1']}/{n}, "

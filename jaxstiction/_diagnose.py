@@ -27,7 +27,8 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
    drift) to the nominal as it is. It is scored on the held-out samples (simulation
    fitness from an estimated initial state, one-step and k-step prediction errors).
    A block is accepted when it is significant and improves held-out simulation
-   fitness by more than the run-to-run spread (bootstrap); output blocks must also
+   fitness by more than the run-to-run spread (bootstrap); an input block's gain must
+   also be its own, not the refit's (`_gain_from_the_block`); output blocks must also
    leave a residual that passes the input cross-correlation test. Accepted blocks
    are ranked by their penalised likelihood ratio; stiction against deadband by the
    significance of J. The first names the verdict; an external oscillation is then
@@ -275,6 +276,8 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
     osc = None
     if s.pvals["external_oscillation"] <= settings.alpha and s.T_obs["external_oscillation"] > 0:
         osc = np.asarray(sinusoid(jnp.zeros(b.n)))  # the output block's own signal
+    lvl = _level_only(b)
+    drift_sig = s.pvals["drift"] <= settings.alpha and s.T_obs["drift"] > 0
     for fam in s.names:
         # significant: beyond the bootstrap null *and* better than the nominal itself
         sig_f = s.pvals[fam] <= settings.alpha and s.T_obs[fam] > 0
@@ -341,6 +344,8 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             need = max(0.5, spread)
             ev.update(spread=round(spread, 3), gain_needed=round(need, 3))
             ok = gain > need
+            if ok and fam in INPUT_FAMILIES:
+                ok = _gain_from_the_block(fam, model, after, lvl, drift_sig, b, s, proof, ev)
             if fam == "external_oscillation" and not ok and cc["passes"]:
                 ok = proof.narrow_band(ev, params, gain, b.pv - s.base_sim, b.c0, b.d0, P)
                 if ok:  # no deterministic block: the model stays the nominal
@@ -358,6 +363,50 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
                 "its residual still correlates with past OP: not accepted as an external effect")
         findings.append(Finding(fam, {**params, "interval": iv}, ev, before, after, bool(ok), model))
     return findings
+
+
+def _level_only(b: _Baseline) -> LoopModel:
+    """The nominal with only its PV offset refitted on the estimation part."""
+    return eqx.tree_at(lambda m: m.pv_offset, b.nominal, b.nominal.pv_offset + float(np.mean(b.z[:b.n_est])))
+
+
+def _gain_from_the_block(fam, model, after, level, drift_sig, b, s, proof, ev) -> bool:
+    """Does an input block's held-out gain over the nominal come from the block, not
+    from what its refit of the offset (and B) picks up besides? Two checks, each
+    recorded in `ev`:
+
+    - it must beat the nominal with only its level refitted (`level`) by the
+      spread, as it beat the nominal. A PV level that moved between the nominal's
+      data and this record gives any refitted model the held-out points of the level
+      (P8 seed 37: a 0.15 % deadband gained 5.5 points over the nominal, -0.2 over
+      the level).
+    - when the drift test is significant, it must also beat the linear valve
+      refitted the same way (B and the offset). A wandering level makes the
+      nominal's held-out score depend on it, and OP, which the controller moves
+      against the wander, lets a refitted B follow part of it (P8 seed 35: a 0.15 %
+      deadband gained 22.0 points over the nominal, 0.9 over the level, -0.03 over
+      the refitted linear valve). Without a drift this check is not made: a refitted
+      B absorbs much of a real block (stiction on P1 seed 12: +10.7 points over the
+      nominal, +2.3 over the refitted linear valve), and the nominal stands. A
+      characteristic proven by the operating point is exempt: the refit of B and the
+      offset hides exactly that evidence (`_characteristic`).
+    """
+    g_lvl = _diff(after["fitness"], _heldout(level, b.op, b.pv, b.n_est)["fitness"])
+    _, sp_lvl = proof.null_gain(model, level)
+    need = max(0.5, sp_lvl)
+    ev.update(gain_over_level=round(g_lvl, 3), spread_over_level=round(sp_lvl, 3))
+    if g_lvl <= need:
+        ev["note"] = (f"its held-out gain is the refitted level's: {g_lvl:+.2f} points over the nominal with only "
+                      f"its level refitted, {need:.2f} needed")
+        return False
+    if drift_sig and not (fam == "valve_characteristic" and s.by_op):
+        g_lin = _diff(after["fitness"], _heldout(s.base_model, b.op, b.pv, b.n_est)["fitness"])
+        ev["gain_over_linear"] = round(g_lin, 3)
+        if g_lin <= 0:
+            ev["note"] = (f"a drift is significant, and the linear valve refitted the same way scores as well held "
+                          f"out ({g_lin:+.2f} points): its gain is the refit following the drift, not the block")
+            return False
+    return True
 
 
 def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):

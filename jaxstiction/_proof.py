@@ -207,7 +207,9 @@ class _Proof:
     def __init__(self, b: _Baseline, s: _Significance, settings: DiagnoseSettings):
         self.b, self.s, self.settings = b, s, settings
         self.before = _heldout(b.nominal, b.op, b.pv, b.n_est)
-        self._ref_scores = {}  # id(reference) -> (records, its held-out score on each)
+        # id(reference) -> (reference, records, its held-out score on each); holding the
+        # reference keeps its id from being reused by a later object
+        self._ref_scores = {}
 
     def null_gain(self, model, reference=None):
         """Held-out gains of `model` over `reference` (default: the nominal) on the
@@ -220,8 +222,8 @@ class _Proof:
         if id(ref) not in self._ref_scores:  # the reference's scores serve every candidate
             data = s.base_sim if reference is None else np.asarray(_jit_scored(ref, b.opj, b.pvj, b.whole)[0])
             recs = jnp.asarray(np.stack([(data + v)[b.n_est:] for v in s.pv_boot]))  # held-out parts
-            self._ref_scores[id(ref)] = (recs, np.asarray(_jit_scores(_shift_phase(ref, b.n_est), op_hold, recs)))
-        recs, base = self._ref_scores[id(ref)]
+            self._ref_scores[id(ref)] = (ref, recs, np.asarray(_jit_scores(_shift_phase(ref, b.n_est), op_hold, recs)))
+        _, recs, base = self._ref_scores[id(ref)]
         gains = np.asarray(_jit_scores(_shift_phase(model, b.n_est), op_hold, recs)) - base
         return float(np.mean(gains)), float(np.std(gains))
 

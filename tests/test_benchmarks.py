@@ -39,3 +39,12 @@ def test_calibrate_verdict_screens_a_loop(monkeypatch, capsys):
     _run(monkeypatch, "calibrate_verdict.py", "--seeds", "0", "--kinds", "none")
     out = capsys.readouterr().out
     assert "balanced accuracy" in out and "none-0" in out
+
+
+@pytest.mark.parametrize("text, seeds", [("0-3", [0, 1, 2, 3]), ("1,4,7", [1, 4, 7]), ("7", [7]),
+                                         ("0-2,30-31,40", [0, 1, 2, 30, 31, 40])])
+def test_seeds_round_trip(text, seeds, monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from _args import seeds_arg, seeds_text
+
+    assert seeds_arg(text) == seeds and seeds_text(seeds) == text

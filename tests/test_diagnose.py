@@ -14,7 +14,7 @@ from test_cli import _assert_one_line_error, _csv, run
 import jaxstiction as js
 from jaxstiction._candidates import _quantisation, _refit_b
 from jaxstiction._characteristic import characteristic_statistics, RANGEABILITIES, rangeability_profile
-from jaxstiction._diagnose import _ranked
+from jaxstiction._diagnose import _ranked, INPUT_FAMILIES
 from jaxstiction._drift import _neg_loglik, drift_noise_model, drift_test
 from jaxstiction._filters import lfilter
 from jaxstiction._joint import _slip_on_proven_band
@@ -183,6 +183,22 @@ def test_verdicts(case, seed, expected):
     else:
         assert not [f for f in d.findings if f.accepted]
     assert json.loads(json.dumps(d.to_json()))["verdict"] == expected
+
+
+@pytest.mark.parametrize("seed, check", [(37, "gain_over_level"), (35, "gain_over_linear")])
+def test_a_drift_proves_no_input_block(seed, check):
+    """P8 (a random-walk drift): a 0.15 % deadband is significant against the
+    bootstrap's stationary noise and gains 5.5 (seed 37) and 22.0 (seed 35) points
+    held out over the nominal, all of it from the refit around it: the refitted level
+    (seed 37), or, with the drift significant, the refitted B following the drift
+    (seed 35). Neither is accepted; seed 35 is named a drift."""
+    sc = js.make_scenario("P8", seed=seed)
+    d = js.diagnose(sc.full.loop, sc.nominal, FAST)
+    db = next(f for f in d.findings if f.effect == "deadband")
+    assert db.evidence["significant"] and db.evidence["heldout_gain"] > db.evidence["gain_needed"]
+    assert not db.accepted and check in db.evidence and "note" in db.evidence
+    assert not [f for f in d.findings if f.accepted and f.effect in INPUT_FAMILIES]
+    assert d.verdict == ("drift" if seed == 35 else "none")
 
 
 def test_stiction_beside_an_external_oscillation():
