@@ -12,14 +12,18 @@ against the targets: noise-free fitness >= 95 % (>= 85 % on all), within 2 point
 the ceiling, S within +-1 of 20 and J within +-0.5 of 2, and how often the fit's
 95 % intervals of S and J hold the truth.
 
-Two reference columns say what the data allow:
+Three reference columns say what the data allow:
 - `truth`: the true plant model, scored the same way (initial state estimated);
 - `oracle`: the true valve path (the plant's Kano valve, so S, J and the valve state
   are known exactly), with only the linear part and its noise model fitted by a
   converged Box-Jenkins prediction-error fit on the estimation record, then scored the
   same way. With the valve known, this fit is statistically efficient for the linear
   part, so no estimator of S, J *and* G can be expected to beat it on average: its
-  count of seeds >= 95 % is what the data allow;
+  count of seeds >= 95 % is what the data allow. Its error in the PV level (the mean
+  of its simulation error against the noise-free PV) is printed beside it, with the
+  noise-free PV's standard deviation: on a record whose PV barely moves, the level
+  alone, which AR(1) noise of pole 0.9 leaves uncertain by ~0.5 units over 1500
+  samples, costs several points;
 - `cell`: the true plant with S and J moved to the centre of the estimation record's
   cell around the truth (the range of S at the true J, and of J at the true S, over
   which the Kano valve slips at exactly the same samples as the plant's valve did).
@@ -93,8 +97,11 @@ def references(seed):
     est, val = sc.estimation, sc.validation
     whole = jnp.ones_like(val.op)
 
+    def sim(model):
+        return simulate_scored(model, val.op, val.pv, whole)[0]
+
     def nf(model):
-        return float(fitness(val.pv_clean, simulate_scored(model, val.op, val.pv, whole)[0]))
+        return float(fitness(val.pv_clean, sim(model)))
 
     cx, sx = jnp.mean(est.op), jnp.std(est.op)
     my, sy = jnp.mean(est.pv), jnp.std(est.pv)
@@ -104,7 +111,11 @@ def references(seed):
     S0, J0 = float(sc.plant.chain[0].S), float(sc.plant.chain[0].J)
     Sc, Jc = _cell_centre(est, S0, J0)
     cell = eqx.tree_at(lambda L: L.chain, sc.plant, (Kano(Sc, Jc),))
-    return nf(sc.plant), nf(oracle), nf(cell)
+    # the oracle's error in the PV level: the offset a 1500-sample record of AR(1)
+    # noise with pole 0.9 leaves uncertain (its long-run standard deviation over
+    # sqrt(N) is ~0.5 PV units), which no fit of the linear part can remove
+    level = float(jnp.mean(sim(oracle) - val.pv_clean))
+    return nf(sc.plant), nf(oracle), nf(cell), level, float(jnp.std(val.pv_clean))
 
 
 def _covers(interval, truth):
@@ -123,7 +134,7 @@ def main():
         t = time.time()
         pay, _, _ = paper_sim_case(seed)
         st = pay["stiction"]
-        truth, oracle, cell = references(seed)
+        truth, oracle, cell, level, pv_std = references(seed)
         row = dict(
             seed=seed,
             noise_free=pay["fitness_noise_free"],
@@ -138,6 +149,8 @@ def main():
             paper_method=pay["fitness_paper_method"],
             truth=truth,
             oracle=oracle,
+            oracle_level_error=level,
+            pv_std=pv_std,
             cell=cell,
             seconds=time.time() - t,
         )
@@ -148,7 +161,8 @@ def main():
                 f"(ceiling {row['ceiling']:.2f}, gap {row['gap']:+.2f})  S {row['S']:.3f}  J {row['J']:.3f}  "
                 f"{'' if row['S_covered'] else '(S outside its interval) '}"
                 f"{'' if row['J_covered'] else '(J outside its interval) '}"
-                f"{row['model']:<8s} [truth {truth:.2f}, oracle {oracle:.2f}, cell {cell:.2f}]  "
+                f"{row['model']:<8s} [truth {truth:.2f}, oracle {oracle:.2f} "
+                f"(level {level:+.2f} of PV std {pv_std:.1f}), cell {cell:.2f}]  "
                 f"paper's method {row['paper_method']:.4g} %  "
                 f"[{row['seconds']:.0f} s]",
                 flush=True,

@@ -4,6 +4,7 @@ The scripts are not run in full here (minutes each); these checks catch what bro
 `calibrate_verdict.py` for a session unnoticed: a script whose options fell out of
 step with the library it calls."""
 
+import json
 import pathlib
 import runpy
 import sys
@@ -48,3 +49,14 @@ def test_seeds_round_trip(text, seeds, monkeypatch):
     from _args import seeds_arg, seeds_text
 
     assert seeds_arg(text) == seeds and seeds_text(seeds) == text
+
+
+def test_drift_power_runs(monkeypatch, capsys):
+    # two seeds of P0 and P8, P8's own step: the statistics exist and the rule's
+    # threshold is the one `diagnose` uses (eight families at alpha 0.05)
+    _run(monkeypatch, "drift_power.py", "--seeds", "0-1", "--steps", "0.3", "--json")
+    out = json.loads(capsys.readouterr().out)
+    assert 3.0 < out["rule_threshold"] < 3.3
+    row = out["steps"]["0.3"]
+    assert set(row) >= {"rule_power", "glr_power_0.01", "oracle_power_0.05"}
+    assert all(0.0 <= v <= 1.0 for v in row.values())
