@@ -250,6 +250,9 @@ def main():
                     help="PRNG seed of the first loop (loop i uses seed + i; default 0)")
     ap.add_argument("--json", action="store_true",
                     help="print one JSON object on stdout (the table goes to stderr)")
+    ap.add_argument("--screen", type=int, nargs=2, default=None, metavar=("SMALL", "LARGE"),
+                    help="also time the full screen (estimate + verdict, fleet.py) on fleets of SMALL and LARGE "
+                         "1500-sample loops; 0 0 skips it (default 8 24, skipped with --quick)")
     args = ap.parse_args()
     global OUT, COMPRESSION, METHOD, FIRST_STEPS
     OUT = sys.stderr if args.json else sys.stdout
@@ -290,12 +293,23 @@ def main():
         rows.append(row("m", op, pv, b["N"], b["n"], m, sweep_batch, np_count, min_time))
     for B in batches:
         rows.append(row("batch", op, pv, b["N"], b["n"], b["m"], B, np_count, min_time))
+    screen = None
+    small, large = args.screen or ((0, 0) if q else (8, 24))
+    if large > small >= 0:
+        # the whole pipeline beside the kernel: what a loop costs the screen
+        from fleet import marginal_cost  # benchmarks/ is on sys.path when run as a script
+
+        screen = marginal_cost(small, large)
+        print(f"\nfull screen (estimate + verdict, fleet.py): {screen['marginal_seconds_per_loop']:.3f} s per "
+              f"1500-sample loop marginal (fleets of {small} and {large}; "
+              f"{screen['ok']}/{screen['loops']} ok)", file=OUT)
     total = time.perf_counter() - t0
     print(f"\ntotal {total:.0f} s", file=OUT)
     if args.json:
         head = rows[0]
         print(json.dumps({"headline": head, "jax_ms_per_loop": head["jax_ms_per_loop"],
                           "numpy_ms_per_loop": head["numpy_ms_per_loop"], "speedup": head["speedup"],
+                          "screen_seconds_per_loop": screen and screen["marginal_seconds_per_loop"],
                           "rows": [r for r in rows if r is not None], "total_s": total}))
 
 

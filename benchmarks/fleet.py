@@ -57,6 +57,26 @@ def timed(count, offset, settings=ScreenSettings()):
     return time.perf_counter() - t0, res, truth
 
 
+def marginal_cost(small=8, large=24, settings=ScreenSettings()) -> dict:
+    """Screen a warm-up chunk (it compiles), then a fleet of `small` and one of
+    `large` loops; the marginal seconds per loop, the balanced accuracy of
+    `stiction_detected`, and the status of every loop that is not ok."""
+    t_warm, _, _ = timed(settings.chunk, 10 * (small + large), settings)  # compiles
+    t_small, r1, tr1 = timed(small, 0, settings)
+    t_large, r2, tr2 = timed(large, small, settings)
+    marginal = (t_large - t_small) / (large - small)
+    truth = {**tr1, **tr2}
+    res = r1 + r2
+    pos = [r for r in res if truth[r["name"]]]
+    neg = [r for r in res if not truth[r["name"]]]
+    tpr = np.mean([r["stiction_detected"] for r in pos])
+    tnr = np.mean([not r["stiction_detected"] for r in neg])
+    return dict(seconds_warm_up=t_warm, small=small, large=large, seconds_small=t_small, seconds_large=t_large,
+                marginal_seconds_per_loop=marginal, ok=sum(r["status"] == "ok" for r in res), loops=len(res),
+                balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()), threads=settings.threads,
+                failed={r["name"]: r["status"] for r in res if r["status"] != "ok"})
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--small", type=int, default=8)
@@ -65,27 +85,13 @@ def main():
                    help="batched calls at once (ScreenSettings.threads; 0: one per CPU core)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    settings = ScreenSettings(threads=args.threads)
-    t_warm, _, _ = timed(ScreenSettings().chunk, 10 * (args.small + args.large), settings)  # compiles
-    t_small, r1, tr1 = timed(args.small, 0, settings)
-    t_large, r2, tr2 = timed(args.large, args.small, settings)
-    marginal = (t_large - t_small) / (args.large - args.small)
-    truth = {**tr1, **tr2}
-    res = r1 + r2
-    pos = [r for r in res if truth[r["name"]]]
-    neg = [r for r in res if not truth[r["name"]]]
-    tpr = np.mean([r["stiction_detected"] for r in pos])
-    tnr = np.mean([not r["stiction_detected"] for r in neg])
-    out = dict(seconds_warm_up=t_warm, small=args.small, large=args.large, seconds_small=t_small, seconds_large=t_large,
-               marginal_seconds_per_loop=marginal, ok=sum(r["status"] == "ok" for r in res), loops=len(res),
-               balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()), threads=args.threads,
-               failed={r["name"]: r["status"] for r in res if r["status"] != "ok"})
+    out = marginal_cost(args.small, args.large, ScreenSettings(threads=args.threads))
     if args.json:
         print(json.dumps(out))
         return
-    print(f"warm-up (compilation): {t_warm:.1f} s; {args.small} loops: {t_small:.1f} s; {args.large} loops: "
-          f"{t_large:.1f} s")
-    print(f"marginal: {marginal:.2f} s per 1500-sample loop (estimate + verdict); "
+    print(f"warm-up (compilation): {out['seconds_warm_up']:.1f} s; {args.small} loops: {out['seconds_small']:.1f} s; "
+          f"{args.large} loops: {out['seconds_large']:.1f} s")
+    print(f"marginal: {out['marginal_seconds_per_loop']:.2f} s per 1500-sample loop (estimate + verdict); "
           f"{out['ok']}/{out['loops']} ok; balanced accuracy {out['balanced_accuracy']:.2f}")
     for status in out["failed"].values():
         print(f"  {status}")  # a loop's error names the loop
