@@ -185,7 +185,18 @@ def _headroom(ax, frac=0.22):
     ax.set_ylim(lo, hi + frac * (hi - lo))
 
 
+RUNAWAY = 0.01  # share of samples outside the measured PV's range that sends a curve to its own panel
+
+
 def _model_fit(result, validation_start, noise_free) -> Figure:
+    """Measured PV against the chosen model's simulation (and the noise-free PV when
+    known): the whole record, then the first `ZOOM` samples of the scored part.
+
+    Axis limits come from the measured PV, so a curve that runs away cannot flatten
+    the picture. The paper's literal method often diverges on new data; when it
+    leaves that range on more than `RUNAWAY` of the samples it is drawn in a third
+    panel of its own (symmetric-log axis), not over the data, where its clipped
+    swings would hide the fit."""
     pv = np.asarray(result.pv, float)
     n = len(pv)
     t = _time(result, n)
@@ -195,18 +206,28 @@ def _model_fit(result, validation_start, noise_free) -> Figure:
     clean = None if noise_free is None else np.asarray(noise_free, float)
     paper = np.asarray(result.pv_sim_paper, float)
     sim = np.asarray(result.pv_sim, float)
+    span = float(np.ptp(pv)) or 1.0
+    lo_y, hi_y = float(pv.min()) - 0.15 * span, float(pv.max()) + 0.15 * span
 
-    fig = _figure((SIZE[0], 1.5 * SIZE[1]))
-    ax, zoom = fig.subplots(2, 1, height_ratios=[1, 1])
+    def outside(c):
+        return (c < lo_y) | (c > hi_y)  # NaN (a method not run) is not outside
+
+    has_paper = bool(np.any(np.isfinite(paper)))
+    runaway = has_paper and float(np.mean(outside(paper) | ~np.isfinite(paper))) > RUNAWAY
+    paper_label = f"paper's method ({result.fitness_paper:.1f} %)"
+
+    if runaway:
+        fig = _figure((SIZE[0], 1.75 * SIZE[1]))
+        ax, zoom, own = fig.subplots(3, 1, height_ratios=[1, 1, 0.55])
+    else:
+        fig = _figure((SIZE[0], 1.5 * SIZE[1]))
+        ax, zoom = fig.subplots(2, 1, height_ratios=[1, 1])
     for a, part, full in ((ax, slice(0, n), True), (zoom, slice(first, stop), False)):
         if full:
             _shade(a, result, validation_start)
         a.plot(t[part], pv[part], color=C_MEAS, lw=0.9 if full else 1.2, label="measured PV")
-        if clean is not None:
-            a.plot(t[part], clean[part], color=C_CLEAN, lw=0.7, label="noise-free PV")
-        a.plot(
-            t[part], paper[part], color=C_PAPER, lw=1.0, ls="--", label=f"paper's method ({result.fitness_paper:.1f} %)"
-        )
+        if has_paper and not runaway:
+            a.plot(t[part], paper[part], color=C_PAPER, lw=1.0, ls="--", label=paper_label)
         a.plot(
             t[part],
             sim[part],
@@ -214,23 +235,32 @@ def _model_fit(result, validation_start, noise_free) -> Figure:
             lw=1.2 if full else 1.6,
             label=f"{result.model_kind} model ({result.fitness:.1f} %)",
         )
+        if clean is not None:  # on top: the thin line the model should follow
+            a.plot(t[part], clean[part], color=C_CLEAN, lw=0.8, label="noise-free PV")
         a.set_ylabel("PV (engineering units)")
         a.grid(alpha=0.3)
     ax.set_title(f"{result.name}: model fit, fitness {result.fitness:.1f} % ({scored})")
-    # Axis limits come from the measured data, so a run-away curve (the paper's
-    # literal method can diverge) cannot flatten the picture; say when one leaves it.
-    span = float(np.ptp(pv)) or 1.0
-    lo_y, hi_y = float(pv.min()) - 0.15 * span, float(pv.max()) + 0.15 * span
     for a in (ax, zoom):
         a.set_ylim(lo_y, hi_y)
         _headroom(a)
-    outside = [lab for lab, c in (("paper's method", paper), ("model", sim)) if np.any((c < lo_y) | (c > hi_y))]
-    if outside:
-        ax.text(0.01, 0.02, f"{' and '.join(outside)} leave the plotted range (limits from the measured PV)",
+    if np.any(outside(sim)):
+        ax.text(0.01, 0.02, "the model leaves the plotted range (limits from the measured PV)",
                 transform=ax.transAxes, fontsize=8, color="0.3", va="bottom")
     zoom.legend(loc="upper center", fontsize=8, ncol=4)
     zoom.set_title(f"first {stop - first} samples of the scored part ({scored})", fontsize=10)
-    zoom.set_xlabel("time (s)")
+    if runaway:
+        _shade(own, result, validation_start)
+        own.plot(t, pv, color=C_MEAS, lw=0.7, label="measured PV")
+        own.plot(t, paper, color=C_PAPER, lw=0.9, ls="--", label=paper_label)
+        own.set_yscale("symlog", linthresh=max(float(np.max(np.abs(pv))), 1e-12))
+        own.set_title("the paper's literal method runs away from the measured PV's range: its own axis "
+                      "(symmetric log)", fontsize=10)
+        own.set_ylabel("PV")
+        own.legend(loc="lower left", fontsize=8, ncol=2)
+        own.grid(alpha=0.3)
+        own.set_xlabel("time (s)")
+    else:
+        zoom.set_xlabel("time (s)")
     return fig
 
 

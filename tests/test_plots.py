@@ -97,3 +97,43 @@ def test_write_fit_figures(tmp_path, overrides, kwargs):
     assert mpl_state() == before
     if not had_pyplot:
         assert "matplotlib.pyplot" not in sys.modules
+
+
+def _line_labels(ax):
+    return [line.get_label() for line in ax.get_lines()]
+
+
+@pytest.mark.parametrize("runaway", [False, True])
+def test_model_fit_gives_a_runaway_curve_its_own_panel(runaway):
+    """A paper's-method curve that leaves the measured PV's range is drawn in a
+    panel of its own, never over the data, whose axes keep the measured PV's range."""
+    from jaxstiction._plots import _model_fit
+
+    result = fake_fit()
+    if runaway:
+        k = np.arange(result.pv.shape[0])
+        result.pv_sim_paper = result.pv + 1e3 * 1.01 ** k  # diverges
+        result.fitness_paper = -3e5
+    fig = _model_fit(result, 400, result.pv - 0.02)
+    assert len(fig.axes) == (3 if runaway else 2)
+    lo, hi = result.pv.min(), result.pv.max()
+    for ax in fig.axes[:2]:
+        labels = _line_labels(ax)
+        assert ("paper's method (80.5 %)" in labels) != runaway
+        assert any("model" in lab for lab in labels) and "noise-free PV" in labels
+        y0, y1 = ax.get_ylim()
+        assert y0 < lo and hi < y1 < hi + 2 * (hi - lo)  # limits from the data, not the runaway curve
+    if runaway:
+        own = fig.axes[2]
+        assert own.get_yscale() == "symlog"
+        assert "paper's method (-300000.0 %)" in _line_labels(own)
+
+
+def test_model_fit_without_the_paper_method():
+    """A fit that did not run the paper's method (its curve NaN) draws none."""
+    from jaxstiction._plots import _model_fit
+
+    result = fake_fit(pv_sim_paper=np.full(800, np.nan), fitness_paper=float("nan"))
+    fig = _model_fit(result, 400, None)
+    assert len(fig.axes) == 2
+    assert not any("paper" in lab for ax in fig.axes for lab in _line_labels(ax))
