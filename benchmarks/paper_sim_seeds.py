@@ -118,7 +118,8 @@ def references(seed):
     so = sim(oracle)
     level = float(jnp.mean(so - val.pv_clean))
     at_level = float(fitness(val.pv_clean, so - level))  # a diagnostic: it reads the noise-free PV
-    return nf(sc.plant), nf(oracle), nf(cell), level, at_level, float(jnp.std(val.pv_clean))
+    return (nf(sc.plant), float(fitness(val.pv_clean, so)), nf(cell), level, at_level,
+            float(jnp.std(val.pv_clean)))
 
 
 def _covers(interval, truth):
