@@ -20,10 +20,19 @@ __all__ = ["LoopDataError", "check_loop", "check_counts"]
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
 
-def _one_line(message: object) -> str:
-    """Collapse whitespace (newlines included) to single spaces; mask control chars."""
-    text = " ".join(str(message).split())
-    return _CONTROL.sub("?", text)
+def one_line(message: object) -> str:
+    """`message` on one line: every run of whitespace (newlines included) one space."""
+    return " ".join(str(message).split())
+
+
+def error_line(e: BaseException, limit: int) -> str:
+    """An exception on one line, its type first, cut at `limit` characters."""
+    return one_line(f"{type(e).__name__}: {e}")[:limit]
+
+
+def _masked_line(message: object) -> str:
+    """`message` on one line, its control characters masked."""
+    return _CONTROL.sub("?", one_line(message))
 
 
 class LoopDataError(ValueError):
@@ -36,7 +45,7 @@ class LoopDataError(ValueError):
     """
 
     def __init__(self, message: object) -> None:
-        super().__init__(_one_line(message))
+        super().__init__(_masked_line(message))
 
 
 class LoopDataWarning(UserWarning):
@@ -46,7 +55,7 @@ class LoopDataWarning(UserWarning):
     prints it as `warning: ...` on stderr, and `screen` adds it to the loop's `note`."""
 
     def __init__(self, message: object) -> None:
-        super().__init__(_one_line(message))
+        super().__init__(_masked_line(message))
 
 
 def is_count(v: object, least: int) -> bool:

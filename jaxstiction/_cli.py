@@ -452,7 +452,7 @@ def main(argv=None) -> int:
     # The application (not the library) chooses float64, recommended for identification.
     jax.config.update("jax_enable_x64", True)
     _compilation_cache()
-    from ._checks import LoopDataError, LoopDataWarning
+    from ._checks import error_line, LoopDataError, LoopDataWarning, one_line
 
     def show(message, category, *rest):
         if issubclass(category, LoopDataWarning):
@@ -464,14 +464,14 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except (LoopDataError, ValueError, OSError) as e:
-        msg = " ".join(str(e).split())
+        msg = one_line(e)
         print(f"error: {msg}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
     except Exception as e:  # a bug: still one line, but say so
-        msg = " ".join(f"{type(e).__name__}: {e}".split())[:500]
+        msg = error_line(e, 500)
         print(f"error: internal failure ({msg}); please report it", file=sys.stderr)
         return EXIT_INTERNAL
     finally:

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from ._checks import _as_column, _nonfinite_message, check_loop, LoopDataError, LoopDataWarning
+from ._checks import _as_column, _nonfinite_message, check_loop, LoopDataError, LoopDataWarning, one_line
 from ._loop import Loop, make_loop
 
 
@@ -54,7 +54,7 @@ def _norm(key: object) -> str:
 
 
 def _short(text: object, limit: int = 30) -> str:
-    s = " ".join(str(text).split())
+    s = one_line(text)
     return s if len(s) <= limit else s[: limit - 3] + "..."
 
 

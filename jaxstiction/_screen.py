@@ -32,7 +32,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._checks import check_counts
+from ._checks import check_counts, error_line, one_line
 from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
 from ._loop import Loop, make_loop, stack
 from ._misc import json_number as _r, release_freed_memory, thread_map
@@ -134,10 +134,6 @@ def _batch(loops: Loop, settings: Settings, vset: VerdictSettings):
     return fits, _verdicts(fits, loops, vset)
 
 
-def _one_line(e: BaseException) -> str:
-    return " ".join(f"{type(e).__name__}: {e}".split())[:300]
-
-
 def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool) -> dict:
     """One loop's screen entry (JSON-ready, plus a `figure` of NumPy arrays when
     `pictures`) from its unbatched host-side fit and verdict."""
@@ -220,14 +216,14 @@ def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSe
                 out += run_chunk([it], length, 1, settings, pictures=pictures)
             return out
         name, file, op, pv, ts = items[0]
-        return [_error(name, file, f"fit failed: {_one_line(e)}", op.shape[0], ts)]
+        return [_error(name, file, f"fit failed: {error_line(e, 300)}", op.shape[0], ts)]
     out = []
     for i, (name, file, op, pv, ts) in enumerate(items):
         fit, ver = jax.tree.map(lambda x: np.asarray(x[i]), (fits, vers))
         try:
             out.append(_record(name, file, op, pv, ts, fit, ver, settings.estimate, pictures))
         except Exception as e:  # noqa: BLE001
-            out.append(_error(name, file, f"report failed: {_one_line(e)}", op.shape[0], ts))
+            out.append(_error(name, file, f"report failed: {error_line(e, 300)}", op.shape[0], ts))
     return out
 
 
@@ -298,8 +294,8 @@ def _message(e: BaseException) -> str:
     from ._checks import LoopDataError
 
     if isinstance(e, (LoopDataError, ValueError, OSError)):
-        return " ".join(str(e).split())[:300]
-    return f"unreadable: {_one_line(e)}"
+        return one_line(e)[:300]
+    return f"unreadable: {error_line(e, 300)}"
 
 
 def _chunks(items, settings: ScreenSettings):
@@ -392,7 +388,7 @@ def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
             try:
                 out += fut.result()
             except Exception as e:  # noqa: BLE001 - a lost worker costs only its chunk
-                out += [_error(m[0], m[1], f"task failed: {_one_line(e)}", m[2].shape[0], m[4]) for m in members]
+                out += [_error(m[0], m[1], f"task failed: {error_line(e, 300)}", m[2].shape[0], m[4]) for m in members]
             if progress is not None:
                 progress(len(members))
         return out
@@ -479,7 +475,7 @@ def diagnose_entry(entry: dict, op, pv, ts, settings, *, enable_x64: bool = Fals
     try:
         d = diagnose(make_loop(op, pv, ts), None, settings, name=str(r.get("name", "loop")))
     except Exception as e:  # noqa: BLE001 - a failed diagnosis costs only this loop's cause
-        return _noted(r, f"diagnose failed, cause from the screen: {_one_line(e)}")
+        return _noted(r, f"diagnose failed, cause from the screen: {error_line(e, 300)}")
     r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up, "accepted": list(d.accepted)}
     if d.verdict == "stiction":
         return _noted(r, "diagnose names stiction, which the screen's held-out test did not confirm; "
@@ -532,7 +528,8 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
             try:
                 out[i] = fut.result()
             except Exception as e:  # noqa: BLE001 - a lost worker costs only this loop's cause
-                out[i] = _noted(dict(out[i]), f"diagnose failed, cause from the screen: task failed: {_one_line(e)}")
+                out[i] = _noted(dict(out[i]),
+                                f"diagnose failed, cause from the screen: task failed: {error_line(e, 300)}")
             if progress is not None:
                 progress(1)
     return out
