@@ -52,10 +52,10 @@ import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 from jaxstiction._blocks import Kano  # noqa: E402
-from jaxstiction._candidates import _loop_model  # noqa: E402
 from jaxstiction._criteria import simulate_scored  # noqa: E402
 from jaxstiction._demo import paper_sim_case  # noqa: E402
 from jaxstiction._filters import fitness  # noqa: E402
+from jaxstiction._models import scaled_loop_model  # noqa: E402
 from jaxstiction._physical import fit_oe  # noqa: E402
 from jaxstiction._scenarios import make_scenario  # noqa: E402
 
@@ -108,7 +108,8 @@ def references(seed):
     my, sy = jnp.mean(est.pv), jnp.std(est.pv)
     w = jnp.ones_like(est.pv).at[:10].set(0.0)  # a linear transient's worth of burn-in
     m, (c, d), _ = _oracle_linear((est.valve - cx) / sx, (est.pv - my) / sy, w)
-    oracle = _loop_model(sc.plant.chain, m, (c, d), 3, my, sy, cx, sx, sc.plant.output)
+    oracle = scaled_loop_model(sc.plant.chain, *m.linear.polynomials(3), m.offset, c, d, my, sy, sx=sx, op_offset=cx,
+                               output=sc.plant.output)
     S0, J0 = float(sc.plant.chain[0].S), float(sc.plant.chain[0].J)
     Sc, Jc = _cell_centre(est, S0, J0)
     cell = eqx.tree_at(lambda L: L.chain, sc.plant, (Kano(Sc, Jc),))

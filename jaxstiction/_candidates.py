@@ -23,7 +23,7 @@ import optimistix as optx
 from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, TravelLimits
 from ._filters import lagged, lfilter
 from ._linalg import lstsq
-from ._models import LinearProcess, LoopModel, NoiseModel
+from ._models import LoopModel, scaled_loop_model
 from ._physical import _delay, fit_oe
 from ._reduce import fit_noise_model
 
@@ -169,19 +169,6 @@ def _fit_linear(x, y, w, order: int, delays, max_delay: int):
     return fits[i], delays[i], losses[i]
 
 
-def _loop_model(chain, oe, noise, max_delay, mu, sy, op_mean, sx, output=()):
-    b, a = oe.linear.polynomials(max_delay)
-    c, d = noise
-    return LoopModel(
-        chain=tuple(chain),
-        process=LinearProcess(b=b * sy / sx, a=a),
-        noise=NoiseModel(c=c, d=d),
-        op_offset=op_mean,
-        pv_offset=mu + sy * oe.offset,
-        output=tuple(output),
-    )
-
-
 def _linear_valve_nominal(op, pv, n_est, s: DiagnoseSettings) -> LoopModel:
     """A nominal model when none is given: linear valve, Box–Jenkins linear part."""
     op_e, pv_e = op[:n_est], pv[:n_est]
@@ -191,7 +178,8 @@ def _linear_valve_nominal(op, pv, n_est, s: DiagnoseSettings) -> LoopModel:
     y = jnp.asarray((pv - mu) / sy)
     w = (jnp.arange(len(op)) < n_est).astype(x.dtype)
     (oe, noise, _), _, _ = _fit_linear(x, y, w, s.order, list(range(1, s.max_delay + 1)), s.max_delay)
-    return _loop_model((), oe, noise, s.max_delay, mu, sy, om, sx)
+    b, a = oe.linear.polynomials(s.max_delay)
+    return scaled_loop_model((), b, a, oe.offset, *noise, mu, sy, sx=sx, op_offset=om)
 
 
 def _fit_sinusoid(z: np.ndarray, n_est: int, period: float) -> tuple[float, float, float]:

@@ -23,7 +23,7 @@ from ._criteria import family_criteria, foe, score, ScoreSettings, simulate_scor
 from ._hammerstein import candidate_knots, fit_spline_candidates, HammersteinModel, SplineSettings
 from ._loop import Loop
 from ._misc import chunked_vmap
-from ._models import InitialState, LinearProcess, LoopModel, NoiseModel, SplineValve
+from ._models import InitialState, LinearProcess, LoopModel, pad_to, scaled_loop_model, SplineValve
 from ._physical import fit_oe, fit_physical, fits_at_once, PhysicalFit, PhysicalSettings, valve_from
 from ._reduce import fit_noise_model
 from ._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
@@ -204,24 +204,9 @@ class LoopFit(eqx.Module):
         return self.model.predict(op, pv, k, initial)
 
 
-def _pad_to(x, n):
-    return jnp.concatenate([x, jnp.zeros((n - x.shape[0],), x.dtype)])
-
-
-def _loop_model(valve0: Kano, valve1: SplineValve, b, a, offset, noise_c, noise_d, noise_var, mu, sd, nb, na):
-    """A LoopModel in engineering units from a scaled-units fit (PV = mu + sd y)."""
-    return LoopModel(
-        chain=(valve0, valve1),
-        process=LinearProcess(b=_pad_to(b * sd, nb), a=_pad_to(a, na)),
-        noise=NoiseModel(c=noise_c, d=noise_d, variance=noise_var * sd**2),
-        op_offset=jnp.zeros((), b.dtype),
-        pv_offset=mu + sd * offset,
-    )
-
-
 def _pad_model(m: LoopModel, nb: int, na: int) -> LoopModel:
     p = m.process
-    return eqx.tree_at(lambda t: t.process, m, LinearProcess(b=_pad_to(p.b, nb), a=_pad_to(p.a, na)))
+    return eqx.tree_at(lambda t: t.process, m, LinearProcess(b=pad_to(p.b, nb), a=pad_to(p.a, na)))
 
 
 def _crossing(u, f, level):
@@ -427,8 +412,8 @@ def _finish(p: Prepared, cand, phys: PhysicalFit | None, settings: Settings) -> 
         b, a = hm.linear.polynomials(D)
         valve = SplineValve(hm.beta, knots[k], kmasks[k], lo, hi, phi_rule_thr)
         one = jnp.ones((1,), dtype)
-        return _loop_model(none, valve, b, a, hm.offset, jnp.concatenate([one, nm.c]),
-                           jnp.concatenate([one, nm.d]), nm.variance, mu, sd, nb, na)
+        return scaled_loop_model((none, valve), b, a, hm.offset, jnp.concatenate([one, nm.c]),
+                                 jnp.concatenate([one, nm.d]), mu, sd, variance=nm.variance, lengths=(nb, na))
 
     m_spline = spline_model(pick.model, ri, ki, jnp.where(ri == 1, thr, 0.0))
     paper_hm = HammersteinModel(plit.paper.beta, plit.paper.linear, plit.paper.offset, jnp.zeros_like(plit.paper.state))
@@ -439,8 +424,8 @@ def _finish(p: Prepared, cand, phys: PhysicalFit | None, settings: Settings) -> 
         pset = settings.physical
         pb, pa = phys.model.linear.polynomials(pset.max_delay)
         c_n, d_n = phys.noise
-        m_phys = _loop_model(Kano(phys.S, phys.J), SplineValve.linear(lo, hi, M, dtype), pb, pa, phys.model.offset,
-                             c_n, d_n, phys.v_oe, mu, sd, nb, na)
+        m_phys = scaled_loop_model((Kano(phys.S, phys.J), SplineValve.linear(lo, hi, M, dtype)), pb, pa,
+                                   phys.model.offset, c_n, d_n, mu, sd, variance=phys.v_oe, lengths=(nb, na))
         dof_ph = 2 + 2 * pset.order + 1
         foe_ph, bic_ph = family_criteria(phys.v_oe, count, dof_ph)
         S, J, S_int, J_int = phys.S, phys.J, phys.S_interval, phys.J_interval
@@ -473,7 +458,8 @@ def _finish(p: Prepared, cand, phys: PhysicalFit | None, settings: Settings) -> 
     def as_model(fit, v, valve0):
         m, (c_, d_) = fit
         b_, a_ = m.linear.polynomials(pset.max_delay)
-        return _loop_model(valve0, SplineValve.linear(lo, hi, M, dtype), b_, a_, m.offset, c_, d_, v, mu, sd, nb, na)
+        return scaled_loop_model((valve0, SplineValve.linear(lo, hi, M, dtype)), b_, a_, m.offset, c_, d_, mu, sd,
+                                 variance=v, lengths=(nb, na))
 
     nb = max(nb, pset.max_delay + pset.order)
     na = max(na, pset.order + 1)

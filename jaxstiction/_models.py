@@ -297,3 +297,34 @@ class LoopModel(eqx.Module):
         v = pv - self.simulate(op, initial)
         e = lfilter(self.noise.d, self.noise.c, v)
         return pv - lfilter(self.noise.impulse(k), jnp.ones((1,), pv.dtype), e)
+
+
+def pad_to(x, n: int):
+    """`x` with zeros appended to length `n`."""
+    return jnp.concatenate([x, jnp.zeros((n - x.shape[0],), x.dtype)])
+
+
+def scaled_loop_model(chain, b, a, offset, noise_c, noise_d, mu, sy, *, sx=None, op_offset=None, variance=None,
+                      lengths: tuple[int, int] | None = None, output=()) -> LoopModel:
+    r"""The [`jaxstiction.LoopModel`][] in engineering units of a fit in scaled units,
+    $y = (PV - \mu) / s_y$ from the input $x = (v - \text{op\_offset}) / s_x$ (the
+    valve path $v$ of `chain`; `sx=None`: not scaled, and `op_offset=None`: 0).
+
+    `b`, `a`, `offset`: the fitted polynomials and output offset (scaled units);
+    `noise_c`, `noise_d`: its noise model, with the innovations' `variance` (scaled
+    units; `None`: the `NoiseModel` default); `lengths`: `(len(b), len(a))` to pad
+    the polynomials to, so that models of different orders stack."""
+    b_dtype = b.dtype
+    b = b * sy if sx is None else b * sy / sx
+    if lengths is not None:
+        b, a = pad_to(b, lengths[0]), pad_to(a, lengths[1])
+    noise = (NoiseModel(c=noise_c, d=noise_d) if variance is None
+             else NoiseModel(c=noise_c, d=noise_d, variance=variance * sy**2))
+    return LoopModel(
+        chain=tuple(chain),
+        process=LinearProcess(b=b, a=a),
+        noise=noise,
+        op_offset=jnp.zeros((), b_dtype) if op_offset is None else op_offset,
+        pv_offset=mu + sy * offset,
+        output=tuple(output),
+    )
