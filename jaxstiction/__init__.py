@@ -59,6 +59,14 @@ from ._hammerstein import (
     HammersteinModel as HammersteinModel,
     SplineSettings as SplineSettings,
 )
+from ._io.nominal import nominal_to_dict as nominal_to_dict, nominal_ts as nominal_ts, read_nominal as read_nominal
+from ._io.read import (
+    find_loop_files as find_loop_files,
+    list_loops as list_loops,
+    loop_name as loop_name,
+    read_loop as read_loop,
+)
+from ._io.read_mat import list_mat_loops as list_mat_loops
 from ._loop import decimate as decimate, Loop as Loop, make_loop as make_loop, stack as stack, unstack as unstack
 from ._models import (
     InitialState as InitialState,
@@ -67,23 +75,11 @@ from ._models import (
     NoiseModel as NoiseModel,
     SplineValve as SplineValve,
 )
-from ._nominal import (
-    nominal_to_dict as nominal_to_dict,
-    nominal_ts as nominal_ts,
-    read_nominal as read_nominal,
-)
 from ._physical import (
     fit_physical as fit_physical,
     PhysicalFit as PhysicalFit,
     PhysicalSettings as PhysicalSettings,
 )
-from ._read import (
-    find_loop_files as find_loop_files,
-    list_loops as list_loops,
-    loop_name as loop_name,
-    read_loop as read_loop,
-)
-from ._read_mat import list_mat_loops as list_mat_loops
 from ._reduce import (
     asymptotic_weight as asymptotic_weight,
     fit_noise_model as fit_noise_model,

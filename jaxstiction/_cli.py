@@ -141,8 +141,8 @@ def cmd_fit(args):
     import numpy as np
 
     from ._estimate import Settings
+    from ._io.read import loop_name, read_loop
     from ._loop import decimate
-    from ._read import loop_name, read_loop
     from ._report import fit
 
     if not 0.0 <= args.validate < 1.0:  # bad options fail before the record is read
@@ -233,9 +233,9 @@ def _diagnosis_text(name, d) -> str:
 
 def cmd_diagnose(args):
     from ._diagnose import diagnose, DiagnoseSettings
+    from ._io.nominal import nominal_ts, read_nominal
+    from ._io.read import loop_name, read_loop
     from ._loop import decimate
-    from ._nominal import nominal_ts, read_nominal
-    from ._read import loop_name, read_loop
 
     settings = DiagnoseSettings(holdout=args.holdout, bootstrap=args.bootstrap)  # bad options fail first
     if args.model and args.decimate > 1:

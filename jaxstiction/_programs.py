@@ -73,9 +73,11 @@ def use_program_cache(path: str | os.PathLike | None):
 
 @functools.cache
 def _source_hash() -> str:
+    """A hash of every source file of the package, its subpackages' too."""
+    package = pathlib.Path(__file__).parent
     h = hashlib.sha256()
-    for f in sorted(pathlib.Path(__file__).parent.glob("*.py")):
-        h.update(f.name.encode())
+    for f in sorted(package.rglob("*.py")):
+        h.update(f.relative_to(package).as_posix().encode())
         h.update(f.read_bytes())
     return h.hexdigest()
 

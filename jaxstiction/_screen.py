@@ -256,8 +256,8 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
     record is decimated by `decimate` (see [`jaxstiction.decimate`][]) before it is
     checked."""
     from ._checks import LoopDataWarning
+    from ._io.read import find_loop_files, list_loops, loop_name, read_loop
     from ._loop import decimate as decimated
-    from ._read import find_loop_files, list_loops, loop_name, read_loop
     from ._report import checked
 
     items, errors, warned = [], [], {}

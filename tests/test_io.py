@@ -10,9 +10,9 @@ import pytest
 
 import jaxstiction as js
 from jaxstiction._checks import check_loop, LoopDataError
+from jaxstiction._io.read import find_loop_files, loop_name, read_loop
+from jaxstiction._io.read_mat import list_mat_loops
 from jaxstiction._loop import Loop, make_loop, stack, unstack
-from jaxstiction._read import find_loop_files, loop_name, read_loop
-from jaxstiction._read_mat import list_mat_loops
 
 
 try:

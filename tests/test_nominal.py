@@ -7,8 +7,8 @@ import pytest
 
 import jaxstiction as js
 from jaxstiction._blocks import ActuatorLag, Choudhury, Deadband, DeadTime, He, Kano, Sinusoid
+from jaxstiction._io.nominal import nominal_to_dict, nominal_ts, read_nominal
 from jaxstiction._models import LinearProcess, LoopModel, SplineValve
-from jaxstiction._nominal import nominal_to_dict, nominal_ts, read_nominal
 
 
 try:

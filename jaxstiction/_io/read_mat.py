@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._checks import LoopDataError
-from ._read import _found, _match_columns, _norm, _short
+from .._checks import LoopDataError
+from .columns import _found, _match_columns, _norm, _short
 
 
 __all__ = ["list_mat_loops"]

@@ -35,10 +35,10 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ._blocks import AbstractBlock, block_name, BLOCKS, make_block
-from ._checks import LoopDataError
-from ._models import LinearProcess, LoopModel
-from ._read import _short
+from .._blocks import AbstractBlock, block_name, BLOCKS, make_block
+from .._checks import LoopDataError
+from .._models import LinearProcess, LoopModel
+from .columns import _short
 
 
 __all__ = ["nominal_to_dict", "nominal_ts", "read_nominal"]
