@@ -46,7 +46,7 @@ import numpy as np
 import optimistix as optx
 
 from jaxstiction._blocks import Kano
-from jaxstiction._relax import relax, relax_problem
+from jaxstiction._estimate.relax import relax, relax_problem
 from jaxstiction._scenarios import nominal_model, paper_experiment
 from jaxstiction._simulate import simulate_loop
 from jaxstiction._spline import hysteresis_regressors, scale_input, uniform_knots

@@ -34,8 +34,8 @@ from paper_sim_seeds import _CELL_GRID, _CELL_HALF, _kano_paths  # noqa: E402
 
 from jaxstiction import Kano  # noqa: E402
 from jaxstiction._criteria import simulate_scored  # noqa: E402
+from jaxstiction._estimate.report import fit  # noqa: E402
 from jaxstiction._filters import fitness  # noqa: E402
-from jaxstiction._report import fit  # noqa: E402
 from jaxstiction._scenarios import make_scenario  # noqa: E402
 
 

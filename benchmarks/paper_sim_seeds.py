@@ -54,9 +54,9 @@ from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.pa
 from jaxstiction._blocks import Kano  # noqa: E402
 from jaxstiction._criteria import simulate_scored  # noqa: E402
 from jaxstiction._demo import paper_sim_case  # noqa: E402
+from jaxstiction._estimate.physical import fit_oe  # noqa: E402
 from jaxstiction._filters import fitness  # noqa: E402
 from jaxstiction._models import scaled_loop_model  # noqa: E402
-from jaxstiction._physical import fit_oe  # noqa: E402
 from jaxstiction._scenarios import make_scenario  # noqa: E402
 
 

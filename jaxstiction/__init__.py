@@ -37,12 +37,35 @@ from ._diagnose import (
     Finding as Finding,
     VERDICTS as VERDICTS,
 )
-from ._estimate import (
-    estimate as estimate,
-    LoopFit as LoopFit,
-    min_length as min_length,
-    RESULTS as RESULTS,
+from ._estimate.estimate import estimate as estimate, min_length as min_length
+from ._estimate.gram import GramProblem as GramProblem, lag_gram as lag_gram
+from ._estimate.hammerstein import (
+    CandidateFit as CandidateFit,
+    fit_spline_candidates as fit_spline_candidates,
+    HammersteinModel as HammersteinModel,
+)
+from ._estimate.physical import fit_physical as fit_physical, PhysicalFit as PhysicalFit
+from ._estimate.reduce import (
+    asymptotic_weight as asymptotic_weight,
+    fit_noise_model as fit_noise_model,
+    LowOrder as LowOrder,
+    reduce_model as reduce_model,
+)
+from ._estimate.relax import (
+    ARXHammerstein as ARXHammerstein,
+    relax as relax,
+    relax_loss as relax_loss,
+    relax_problem as relax_problem,
+    relax_sweep as relax_sweep,
+    RelaxProblem as RelaxProblem,
+    RelaxSolution as RelaxSolution,
+)
+from ._estimate.report import fit as fit, FitReport as FitReport, report as report
+from ._estimate.result import LoopFit as LoopFit, RESULTS as RESULTS
+from ._estimate.settings import (
+    PhysicalSettings as PhysicalSettings,
     Settings as Settings,
+    SplineSettings as SplineSettings,
 )
 from ._filters import (
     fitness as fitness,
@@ -51,13 +74,6 @@ from ._filters import (
     lagged as lagged,
     lfilter as lfilter,
     step_response as step_response,
-)
-from ._gram import GramProblem as GramProblem, lag_gram as lag_gram
-from ._hammerstein import (
-    CandidateFit as CandidateFit,
-    fit_spline_candidates as fit_spline_candidates,
-    HammersteinModel as HammersteinModel,
-    SplineSettings as SplineSettings,
 )
 from ._io.nominal import nominal_to_dict as nominal_to_dict, nominal_ts as nominal_ts, read_nominal as read_nominal
 from ._io.read import (
@@ -75,27 +91,6 @@ from ._models import (
     NoiseModel as NoiseModel,
     SplineValve as SplineValve,
 )
-from ._physical import (
-    fit_physical as fit_physical,
-    PhysicalFit as PhysicalFit,
-    PhysicalSettings as PhysicalSettings,
-)
-from ._reduce import (
-    asymptotic_weight as asymptotic_weight,
-    fit_noise_model as fit_noise_model,
-    LowOrder as LowOrder,
-    reduce_model as reduce_model,
-)
-from ._relax import (
-    ARXHammerstein as ARXHammerstein,
-    relax as relax,
-    relax_loss as relax_loss,
-    relax_problem as relax_problem,
-    relax_sweep as relax_sweep,
-    RelaxProblem as RelaxProblem,
-    RelaxSolution as RelaxSolution,
-)
-from ._report import fit as fit, FitReport as FitReport, report as report
 from ._scenarios import make_scenario as make_scenario, Scenario as Scenario, SCENARIOS as SCENARIOS
 from ._screen import (
     rank as rank,

@@ -21,11 +21,11 @@ import numpy as np
 import optimistix as optx
 
 from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, TravelLimits
+from ._estimate.physical import _delay, fit_oe
+from ._estimate.reduce import fit_noise_model
 from ._filters import lagged, lfilter
 from ._linalg import lstsq
 from ._models import LoopModel, scaled_loop_model
-from ._physical import _delay, fit_oe
-from ._reduce import fit_noise_model
 
 
 if TYPE_CHECKING:

@@ -140,10 +140,10 @@ def _decimate_field(args) -> dict:
 def cmd_fit(args):
     import numpy as np
 
-    from ._estimate import Settings
+    from ._estimate.report import fit
+    from ._estimate.settings import Settings
     from ._io.read import loop_name, read_loop
     from ._loop import decimate
-    from ._report import fit
 
     if not 0.0 <= args.validate < 1.0:  # bad options fail before the record is read
         raise ValueError(f"`--validate` must be a fraction in [0, 1), got {args.validate:g}")
@@ -166,7 +166,8 @@ def cmd_fit(args):
 
 def screen_settings(args):
     """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`)."""
-    from ._screen import FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE, ScreenSettings
+    from ._estimate.settings import FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE
+    from ._screen import ScreenSettings
 
     estimate = FULL_SEARCH_ESTIMATE if args.full_search else SCREEN_ESTIMATE
     if args.max_delay is not None:
@@ -410,7 +411,7 @@ def _compilation_cache():
     where = _cache_folder()
     if where is None:
         return
-    from ._programs import use_program_cache
+    from ._estimate.programs import use_program_cache
 
     use_program_cache(os.path.join(where, "programs"))
     _xla_cache(where)

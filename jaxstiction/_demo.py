@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._criteria import simulate_scored
-from ._estimate import held_out_note
+from ._estimate.report import fit, FitReport
+from ._estimate.result import held_out_note
 from ._filters import fitness
-from ._report import fit, FitReport
 from ._scenarios import make_scenario
 
 

@@ -53,7 +53,7 @@ from ._candidates import _arma11, _fit_sinusoid, _quantisation
 from ._characteristic import rangeability_profile
 from ._checks import check_counts, is_count
 from ._drift import drift_noise_model
-from ._estimate import Settings
+from ._estimate.settings import SCREEN_ESTIMATE, Settings
 from ._filters import lfilter
 from ._joint import _joint_stiction
 from ._locate import ar_whiten, spectrum_lines, whiteness
@@ -71,7 +71,6 @@ from ._proof import (
     Finding,
     K_STEP,
 )
-from ._screen import SCREEN_ESTIMATE
 from ._significance import _Baseline, _baseline, _Grid, _Significance, _significance
 
 

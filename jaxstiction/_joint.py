@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ._estimate import estimate
+from ._estimate.estimate import estimate
 from ._loop import make_loop
 from ._misc import thread_map
 from ._proof import _bootstrap_noise, _jit_scored, _null_tail, _prove, _revised, Finding

@@ -11,8 +11,6 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._report import crossing as _crossing
-
 
 DPI = 110
 SIZE = (8.0, 4.5)  # inches; figures with two rows of panels are taller
@@ -62,6 +60,17 @@ def write_fit_figures(result, out_dir, *, validation_start=None, noise_free=None
         fig.savefig(path, dpi=DPI)
         paths.append(path)
     return paths
+
+
+def _crossing(u, f, level):
+    """OP at which curve `f(u)` crosses `level` (the middle crossing if several)."""
+    s = np.sign(f - level)
+    idx = np.flatnonzero(np.diff(s) != 0)
+    if idx.size == 0:
+        return None
+    i = idx[len(idx) // 2]
+    t = (level - f[i]) / (f[i + 1] - f[i])
+    return u[i] + t * (u[i + 1] - u[i])
 
 
 def _figure(size=SIZE) -> Figure:

@@ -33,52 +33,12 @@ import jax
 import numpy as np
 
 from ._checks import check_counts, error_line, one_line
-from ._estimate import delay_note, estimate, held_out_note, KINDS, RESULTS, Settings
+from ._estimate.estimate import estimate
+from ._estimate.result import delay_note, held_out_note, KINDS, RESULTS
+from ._estimate.settings import SCREEN_ESTIMATE, Settings
 from ._loop import Loop, make_loop, stack
 from ._misc import json_number as _r, release_freed_memory, thread_map
-from ._physical import PhysicalSettings
 from ._verdict import CAUSES, usable, verdict, VerdictSettings
-
-
-# The screen's estimator: what the verdict needs (the Kano valve and its linear and
-# deadband nulls), not the spline family, with a lighter Kano search (fewer stage-2
-# starts, coarser refinement and line searches, fewer initial valve states). About
-# 7x cheaper than `Settings()` on a 1500-sample loop (1.2-1.3 s against 8.8 s, one
-# loop, this 2-core machine, before the step budget below). The scoring keeps its 40
-# initial-state candidates: with 16, CHEM1's held-out Kano simulation starts in the
-# wrong state and its verdict flips. Its grid criterion keeps the order-4 ARX of the
-# calibration (see `verdict`), cheaper per grid point than the full estimator's order 8.
-# The verdict reads no interval, so the wider interval grid is off.
-#
-# Its Box-Jenkins fits (18 in the final Kano stage, 8 for the nulls: ~60 % of a loop's
-# cost at 40 steps) stop after 15 Levenberg-Marquardt steps. On 72 stage-3 fits of
-# 1500-sample loops the simulation loss was then within 7e-5 (relative) of a 100-step
-# fit. With 40 steps and with 15, the 60 calibration loops (seeds 0-11) got the same
-# verdicts and causes, and the 14 ISDB loops the same `stiction_detected`; CHEM13's
-# cause moved from deadband to external_oscillation. The held-out evidence of poorly
-# excited loops moves with the budget (CHEM13: 372 -> -20 points; PAP4's band 0.9 ->
-# 12.6 %): their fits have not converged at 40 or at 100 steps either.
-#
-# One polish start (line searches and the final Box-Jenkins grid from the best stage-2
-# point only) instead of two: the Kano search is ~85 % of a loop's cost, and the
-# second start's line searches and 9 final fits were ~25 % of it. On the 288
-# calibration loops (seeds 0-47) the verdict then finds 128 instead of 130 of the 144
-# valve bands (two small slips with bands of 64 and 84 % of their OP range lose
-# held out), with the same single false alarm; the 14 ISDB loops keep their
-# `stiction_detected` and causes. The 1500-sample fleet's marginal cost fell from
-# 0.59 to 0.45 s per loop (fleets of 8 and 24, one run each).
-SCREEN_ESTIMATE = Settings(
-    use_spline=False,
-    physical=PhysicalSettings(arx_order=4, starts=4, refine=11, refine_S=41, line=21, rounds=2, polish_starts=1,
-                              init_count=3, final=3, oe_steps=15, interval_span=0.0),
-)
-
-# `jaxstiction screen --full-search`: the full estimator's Kano search (its order-8
-# grid criterion, finer refinement, three polish starts, 40-step Box-Jenkins fits),
-# still without the spline family; ~15 times the light profile's cost per loop. It
-# pays on integrating (level) loops, where the light search often misses the band
-# (README, *Verdict calibration*).
-FULL_SEARCH_ESTIMATE = Settings(use_spline=False)
 
 
 class ScreenSettings(eqx.Module):
@@ -179,7 +139,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "delay": int(fit.delay),
     }
     if pictures and ok:
-        from ._report import report
+        from ._estimate.report import report
 
         jfit = jax.tree.map(jax.numpy.asarray, fit)
         r = report(jfit, op, pv, name=name, ts=ts, settings=settings)
@@ -256,9 +216,9 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
     record is decimated by `decimate` (see [`jaxstiction.decimate`][]) before it is
     checked."""
     from ._checks import LoopDataWarning
+    from ._estimate.report import checked
     from ._io.read import find_loop_files, list_loops, loop_name, read_loop
     from ._loop import decimate as decimated
-    from ._report import checked
 
     items, errors, warned = [], [], {}
     taken: set[str] = set()
@@ -332,7 +292,7 @@ def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSe
 
 
 def _checked_loop(lp: Loop, name, settings):
-    from ._report import checked
+    from ._estimate.report import checked
 
     m = np.asarray(lp.mask) > 0
     return checked(np.asarray(lp.op)[m], np.asarray(lp.pv)[m], name, settings.estimate)

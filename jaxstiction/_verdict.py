@@ -86,7 +86,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._checks import check_counts
 from ._criteria import predicted, ScoreSettings, simulate_scored
-from ._estimate import estimation_parts, RESULTS
+from ._estimate.estimate import estimation_parts
+from ._estimate.result import RESULTS
 from ._filters import fitness, fitness_trend_free
 from ._loop import Loop
 

@@ -217,7 +217,7 @@ def test_screen_search_options_choose_the_estimator_profile():
     either."""
     from jaxstiction import Settings
     from jaxstiction._cli import build_parser, screen_settings
-    from jaxstiction._screen import SCREEN_ESTIMATE
+    from jaxstiction._estimate.settings import SCREEN_ESTIMATE
 
     def settings(*argv):
         return screen_settings(build_parser().parse_args(["screen", "x.csv", *argv])).estimate

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._estimate import _estimate_traced, choose_family, held_out_note
+from jaxstiction._estimate.estimate import _estimate_traced, choose_family
+from jaxstiction._estimate.result import held_out_note
 from jaxstiction._scenarios import nominal_model, paper_experiment
 
 
@@ -200,7 +201,7 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     the programs are kept in memory and nothing is written, and every route gives
     what `estimate` gives. (With the screen's profile, the smaller program: the
     cache does not depend on the settings.)"""
-    from jaxstiction import _programs
+    from jaxstiction._estimate import programs as _programs
 
     # (the suite's conftest turns on XLA's persistent compilation cache, as the
     # command line does, so the loaded and the rebuilt program are not compiled again)

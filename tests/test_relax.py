@@ -9,15 +9,8 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from jaxstiction._gram import lag_gram
-from jaxstiction._relax import (
-    ARXHammerstein,
-    relax,
-    relax_init,
-    relax_loss,
-    relax_problem,
-    relax_sweep,
-)
+from jaxstiction._estimate.gram import lag_gram
+from jaxstiction._estimate.relax import ARXHammerstein, relax, relax_init, relax_loss, relax_problem, relax_sweep
 from jaxstiction._scenarios import make_scenario
 from jaxstiction._spline import (
     direction,

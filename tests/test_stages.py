@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._estimate import min_length
+from jaxstiction._estimate.estimate import min_length
+from jaxstiction._estimate.hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
+from jaxstiction._estimate.physical import _arx_design, arx_loss, FIT_BYTES_PER_SAMPLE, fit_physical, valve_from
+from jaxstiction._estimate.reduce import fit_noise_model, LowOrder, reduce_model, welch
 from jaxstiction._filters import freq_response, lfilter
-from jaxstiction._hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
 from jaxstiction._linalg import is_stable
-from jaxstiction._physical import _arx_design, arx_loss, FIT_BYTES_PER_SAMPLE, fit_physical, valve_from
-from jaxstiction._reduce import fit_noise_model, LowOrder, reduce_model, welch
 from jaxstiction._scenarios import nominal_model, p_experiment, paper_experiment
 
 

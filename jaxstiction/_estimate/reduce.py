@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._filters import freq_response, lagged, lfilter
-from ._linalg import HouseholderQR, is_stable, lstsq as _lstsq
+from .._filters import freq_response, lagged, lfilter
+from .._linalg import HouseholderQR, is_stable, lstsq as _lstsq
 
 
 def welch(x, e, seg: int, weights=None):

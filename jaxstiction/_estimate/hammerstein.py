@@ -18,51 +18,13 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._checks import check_counts
-from ._filters import fitness, lfilter, steady_state
-from ._gram import whitening
-from ._linalg import HouseholderQR, is_stable
-from ._reduce import asymptotic_weight, LowOrder, reduce_model, ReductionSolution
-from ._relax import relax, relax_problem, RelaxSolution
-from ._spline import hysteresis_regressors
-
-
-class SplineSettings(eqx.Module):
-    """Static settings of the spline estimator (shapes), with the paper's defaults.
-
-    **Arguments:**
-
-    - `arx_order`: high-order ARX order $n$ (13).
-    - `knot_counts`: candidate knot counts $m$ for FOE (22).
-    - `max_order`: largest reduced order $l$ tried by ASYC (21).
-    - `max_delay`: largest input delay (samples) tried in the reduction.
-    - `relax_steps`: cap on relaxation sweeps; `compression`: `"qr"` or `"gram"`
-      (faster, for noisy records only; see [`jaxstiction.relax_problem`][]).
-    - `welch_segment`: segment length of the spectral estimates in (18).
-    - `polish`: run the output-error polish after the paper's steps.
-    - `range_factor`: a candidate whose simulation leaves the estimation PV range by
-      more than this many ranges is not chosen.
-    """
-
-    arx_order: int = eqx.field(static=True, default=10)
-    knot_counts: tuple = eqx.field(static=True, default=(3, 4, 5, 6, 8, 10, 12))
-    max_order: int = eqx.field(static=True, default=3)
-    max_delay: int = eqx.field(static=True, default=3)
-    relax_steps: int = eqx.field(static=True, default=300)
-    compression: str = eqx.field(static=True, default="qr")
-    welch_segment: int = eqx.field(static=True, default=128)
-    polish: bool = eqx.field(static=True, default=True)
-    polish_steps: int = eqx.field(static=True, default=60)
-    range_factor: float = eqx.field(static=True, default=1.0)
-
-    def __check_init__(self):
-        check_counts(self, positive=("arx_order", "max_order", "max_delay", "relax_steps", "welch_segment"),
-                     nonnegative=("polish_steps",))
-        if not self.knot_counts or any(isinstance(k, bool) or not isinstance(k, int) or k < 2
-                                       for k in self.knot_counts):
-            raise ValueError(f"`SplineSettings.knot_counts` must be whole numbers >= 2, got {self.knot_counts!r}")
-        if self.compression not in ("qr", "gram"):
-            raise ValueError(f"`SplineSettings.compression` must be 'qr' or 'gram', got {self.compression!r}")
+from .._filters import fitness, lfilter, steady_state
+from .._linalg import HouseholderQR, is_stable
+from .._spline import hysteresis_regressors
+from .gram import whitening
+from .reduce import asymptotic_weight, LowOrder, reduce_model, ReductionSolution
+from .relax import relax, relax_problem, RelaxSolution
+from .settings import SplineSettings
 
 
 class HammersteinModel(eqx.Module):

@@ -13,13 +13,13 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._blocks import Kano
-from ._checks import check_counts
-from ._filters import lagged, lfilter, steady_state
-from ._linalg import gram_cholesky, HouseholderQR, is_stable, lstsq as _lstsq
-from ._misc import chunked_vmap
-from ._reduce import LowOrder
-from ._spline import scale_input
+from .._blocks import Kano
+from .._filters import lagged, lfilter, steady_state
+from .._linalg import gram_cholesky, HouseholderQR, is_stable, lstsq as _lstsq
+from .._misc import chunked_vmap
+from .._spline import scale_input
+from .reduce import LowOrder
+from .settings import PhysicalSettings
 
 
 # Bytes per record sample that one output-error fit of the final stage holds while it
@@ -32,65 +32,6 @@ def fits_at_once(length: int, memory_budget: int) -> int:
     """How many output-error fits of a `length`-sample record run side by side within
     `memory_budget` bytes (at least one)."""
     return int(max(1, memory_budget // (FIT_BYTES_PER_SAMPLE * length)))
-
-
-class PhysicalSettings(eqx.Module):
-    """Static settings of the physical (Kano) fit.
-
-    - `num_S`, `num_J`: stage-1 grid; `S` spans 0 to `max_band` × OP range,
-      `J` spans 0 to `S`.
-    - `starts`: best stage-1 points refined on a `refine` × `refine` local grid.
-    - `final`: points per axis of the output-error grid (stage 3, profile likelihood).
-    - `interval_span`: the intervals of S and J also use a second `final` × `final`
-      output-error grid around the same centre, this many times wider (0: none). The
-      95 % region usually reaches past the first grid's edge, which alone gave
-      intervals holding the truth on 21 (S) and 23 (J) of 30 `paper_sim` seeds.
-    - `burn_in`: samples ignored after the model valve first moves (see
-      `valve_from`); `init_count`: candidate stopping points per direction of the
-      unknown initial valve state, tried in the line searches and the final stage.
-    - `refine_S`: S points of the stage-2 grid; `polish_starts`, `line`, `rounds`:
-      alternating fine line searches in S and J from that many stage-2 points.
-    - `chunk`, `memory_budget`: grid points evaluated at once (at most `chunk`, and
-      fewer when their regressors would exceed `memory_budget` bytes); the
-      output-error fits of the final stage, too, run as many at once as fit in
-      `memory_budget` (all 75 of the defaults on records up to ~3300 samples).
-    - `arx_order`: order of the least-squares (ARX) linear part of the grid
-      criterion. The noise is coloured, so an ARX criterion is biased; a high order
-      approximates the Box-Jenkins model (the paper's argument for its order-10 ARX).
-      At order 4 the grid preferred a wrong J (off by 0.5-1.7) on 3 of 20 `paper_sim`
-      seeds; at 8, on 1 of 20, for ~20 % more search time.
-    - `order`: order of the output-error linear part.
-    - `max_delay`: delays 1..`max_delay` are tried.
-    """
-
-    num_S: int = eqx.field(static=True, default=61)
-    num_J: int = eqx.field(static=True, default=11)
-    max_band: float = eqx.field(static=True, default=1.0)
-    arx_order: int = eqx.field(static=True, default=8)
-    order: int = eqx.field(static=True, default=2)
-    max_delay: int = eqx.field(static=True, default=3)
-    starts: int = eqx.field(static=True, default=8)
-    refine: int = eqx.field(static=True, default=21)
-    refine_S: int = eqx.field(static=True, default=81)
-    final: int = eqx.field(static=True, default=5)
-    interval_span: float = eqx.field(static=True, default=4.0)
-    oe_steps: int = eqx.field(static=True, default=40)
-    chunk: int = eqx.field(static=True, default=64)
-    memory_budget: int = eqx.field(static=True, default=100_000_000)
-    init_count: int = eqx.field(static=True, default=5)
-    polish_starts: int = eqx.field(static=True, default=3)
-    line: int = eqx.field(static=True, default=41)
-    rounds: int = eqx.field(static=True, default=3)
-    burn_in: int = eqx.field(static=True, default=10)
-
-    def __check_init__(self):
-        check_counts(self, positive=("num_S", "num_J", "arx_order", "order", "max_delay", "starts", "refine",
-                                     "refine_S", "final", "oe_steps", "chunk", "memory_budget", "init_count",
-                                     "line"),
-                     nonnegative=("polish_starts", "rounds", "burn_in"))
-        if not self.max_band > 0 or not self.interval_span >= 0:
-            raise ValueError("`PhysicalSettings.max_band` must be > 0 and `interval_span` >= 0, "
-                             f"got {self.max_band!r} and {self.interval_span!r}")
 
 
 def _arx_design(x, y, order: int, delay):

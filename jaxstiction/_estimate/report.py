@@ -9,29 +9,20 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._blocks import Kano
-from ._checks import check_loop, LoopDataError
-from ._criteria import simulate_scored
-from ._estimate import delay_note, held_out_note, KINDS, LoopFit, min_length, RESULTS, Settings
-from ._filters import step_response
-from ._loop import make_loop
-from ._misc import json_number as _r
-from ._programs import estimate_cached, simulations_of
-from ._spline import scale_input, valve_curves
+from .._blocks import Kano
+from .._checks import check_loop, LoopDataError
+from .._criteria import simulate_scored
+from .._filters import step_response
+from .._loop import make_loop
+from .._misc import json_number as _r
+from .._spline import scale_input, valve_curves
+from .estimate import min_length
+from .programs import estimate_cached, simulations_of
+from .result import delay_note, held_out_note, KINDS, LoopFit, RESULTS
+from .settings import Settings
 
 
 RULES = ("literal", "robust")
-
-
-def crossing(u, f, level):
-    """OP at which curve `f(u)` crosses `level` (the middle crossing if several)."""
-    s = np.sign(f - level)
-    idx = np.flatnonzero(np.diff(s) != 0)
-    if idx.size == 0:
-        return None
-    i = idx[len(idx) // 2]
-    t = (level - f[i]) / (f[i + 1] - f[i])
-    return u[i] + t * (u[i + 1] - u[i])
 
 
 @dataclasses.dataclass(frozen=True)

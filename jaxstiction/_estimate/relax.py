@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
-from ._filters import lagged
-from ._gram import _DROP, GramProblem, lag_gram
-from ._linalg import lstsq as _lstsq, qr_r, spd_solve
+from .._filters import lagged
+from .._linalg import lstsq as _lstsq, qr_r, spd_solve
+from .gram import _DROP, GramProblem, lag_gram
 
 
 class RelaxProblem(eqx.Module):

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._linalg import gram_cholesky, solve_upper, spd_solve
+from .._linalg import gram_cholesky, solve_upper, spd_solve
 
 
 _DROP = 1e-10  # pivot (unit-diagonal scale) below which a column counts as dependent

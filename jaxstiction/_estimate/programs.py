@@ -44,19 +44,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._criteria import simulate_scored
-from ._estimate import (
-    _finish,
-    _physical_stage,
-    _prepare,
-    _spline_stage,
-    estimate,
-    estimation_parts,
-    LoopFit,
-    Settings,
-)
-from ._loop import Loop
-from ._misc import release_freed_memory
+from .._criteria import simulate_scored
+from .._loop import Loop
+from .._misc import release_freed_memory
+from .estimate import _finish, _physical_stage, _prepare, _spline_stage, estimate, estimation_parts
+from .result import LoopFit
+from .settings import Settings
 
 
 _where: pathlib.Path | None = None
@@ -74,7 +67,7 @@ def use_program_cache(path: str | os.PathLike | None):
 @functools.cache
 def _source_hash() -> str:
     """A hash of every source file of the package, its subpackages' too."""
-    package = pathlib.Path(__file__).parent
+    package = pathlib.Path(__file__).parents[1]
     h = hashlib.sha256()
     for f in sorted(package.rglob("*.py")):
         h.update(f.relative_to(package).as_posix().encode())
