@@ -110,7 +110,8 @@ from ._spline import (
     uniform_knots as uniform_knots,
     valve_curves as valve_curves,
 )
-from ._verdict import CAUSES as CAUSES, Verdict as Verdict, verdict as verdict, VerdictSettings as VerdictSettings
+from ._verdict.settings import VerdictSettings as VerdictSettings
+from ._verdict.verdict import CAUSES as CAUSES, Verdict as Verdict, verdict as verdict
 
 
 try:

@@ -20,7 +20,7 @@ from ._estimate.estimate import estimate
 from ._loop import make_loop
 from ._misc import thread_map
 from ._proof import _bootstrap_noise, _jit_scored, _null_tail, _prove, _revised, Finding
-from ._verdict import usable
+from ._verdict.verdict import usable
 
 
 if TYPE_CHECKING:

@@ -38,7 +38,8 @@ from ._estimate.result import delay_note, held_out_note, KINDS, RESULTS
 from ._estimate.settings import SCREEN_ESTIMATE, Settings
 from ._loop import Loop, make_loop, stack
 from ._misc import json_number as _r, release_freed_memory, thread_map
-from ._verdict import CAUSES, usable, verdict, VerdictSettings
+from ._verdict.settings import VerdictSettings
+from ._verdict.verdict import CAUSES, usable, verdict
 
 
 class ScreenSettings(eqx.Module):

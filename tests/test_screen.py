@@ -16,7 +16,7 @@ import jaxstiction as js
 from jaxstiction._criteria import predicted
 from jaxstiction._filters import fitness
 from jaxstiction._screen import bucket_length, chunk_size, rank
-from jaxstiction._verdict import residual_line
+from jaxstiction._verdict.verdict import residual_line
 
 
 SCREEN = js.ScreenSettings(estimate=SMALL, chunk=3)

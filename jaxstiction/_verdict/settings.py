@@ -1,0 +1,56 @@
+"""Settings of [`jaxstiction.verdict`][]: the thresholds of the stiction verdict
+(a leaf: the screen's and the diagnosis's settings import it)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+
+from .._checks import check_counts
+
+
+class VerdictSettings(eqx.Module):
+    """Thresholds of [`jaxstiction.verdict`][] (static).
+
+    - `min_gain`: held-out simulation fitness (points) the Kano valve must gain over
+      the linear valve; `min_gain_estimation`: the same on the estimation samples.
+    - `min_band`: the smallest band `S` that counts, as a fraction of the OP range
+      (a stiction limit cycle moves OP by about the band; a Kano fit with a band
+      far below the OP's travel is mimicking something else).
+    - `prediction_horizon` (samples), `prediction_band`: the second test (see the
+      module notes): the Kano valve's gain in `prediction_horizon`-step prediction
+      must exceed `min_gain` (held out) and `min_gain_estimation`, with a band of at
+      least `prediction_band` × the OP range. `prediction_init_count`: candidate
+      stopping points per direction in the search of the initial valve state before
+      each prediction is scored.
+    - `min_slip_gain`: points the Kano valve must gain over a deadband (J = 0), on
+      the held-out or on the estimation samples, for the slip jump to count as
+      identified (`slip_identified`; it does not change the verdict).
+    - `oscillation`: share of the linear model's residual power in one narrow band
+      (± one Fourier bin) above which the residual holds an external oscillation;
+      `min_period`, `max_fraction`: lines with periods outside
+      [`min_period`, `max_fraction` × record] samples are not oscillations.
+    - `same_line`: relative difference of period within which the Kano model's
+      strongest residual line is the linear model's (see the module notes).
+    - `trend_degree`: the simulation gains are measured after a polynomial trend of
+      this degree, fitted on each scored part, is removed from the PV and from the
+      simulation error ([`jaxstiction.fitness_trend_free`][]; `None`: the plain
+      fitness (34) that `estimate` scores). See the module notes.
+    """
+
+    min_gain: float = eqx.field(static=True, default=1.0)
+    min_gain_estimation: float = eqx.field(static=True, default=1.0)
+    min_band: float = eqx.field(static=True, default=0.05)
+    prediction_horizon: int = eqx.field(static=True, default=3)
+    prediction_band: float = eqx.field(static=True, default=0.10)
+    prediction_init_count: int = eqx.field(static=True, default=10)
+    min_slip_gain: float = eqx.field(static=True, default=1.5)
+    oscillation: float = eqx.field(static=True, default=0.25)
+    min_period: float = eqx.field(static=True, default=3.0)
+    max_fraction: float = eqx.field(static=True, default=0.25)
+    same_line: float = eqx.field(static=True, default=0.1)
+    trend_degree: int | None = eqx.field(static=True, default=2)
+
+    def __check_init__(self):
+        check_counts(self, positive=("prediction_horizon", "prediction_init_count"))
+        if self.trend_degree is not None:
+            check_counts(self, nonnegative=("trend_degree",))
