@@ -45,8 +45,8 @@ import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 from jaxstiction import Drift, simulate_loop  # noqa: E402
-from jaxstiction._diagnose import DiagnoseSettings, INPUT_FAMILIES, OUTPUT_FAMILIES  # noqa: E402
-from jaxstiction._drift import _neg_loglik, drift_test  # noqa: E402
+from jaxstiction._diagnose.drift import _neg_loglik, drift_test  # noqa: E402
+from jaxstiction._diagnose.settings import DiagnoseSettings, INPUT_FAMILIES, OUTPUT_FAMILIES  # noqa: E402
 from jaxstiction._scenarios import nominal_model, p_experiment, P_N, P_SPLIT  # noqa: E402
 
 

@@ -30,13 +30,8 @@ from ._criteria import (
     ScoreSettings as ScoreSettings,
     simulate_scored as simulate_scored,
 )
-from ._diagnose import (
-    diagnose as diagnose,
-    DiagnoseSettings as DiagnoseSettings,
-    Diagnosis as Diagnosis,
-    Finding as Finding,
-    VERDICTS as VERDICTS,
-)
+from ._diagnose.diagnose import diagnose as diagnose, Diagnosis as Diagnosis, Finding as Finding
+from ._diagnose.settings import DiagnoseSettings as DiagnoseSettings, VERDICTS as VERDICTS
 from ._estimate.estimate import estimate as estimate, min_length as min_length
 from ._estimate.gram import GramProblem as GramProblem, lag_gram as lag_gram
 from ._estimate.hammerstein import (

@@ -233,7 +233,8 @@ def _diagnosis_text(name, d) -> str:
 
 
 def cmd_diagnose(args):
-    from ._diagnose import diagnose, DiagnoseSettings
+    from ._diagnose.diagnose import diagnose
+    from ._diagnose.settings import DiagnoseSettings
     from ._io.nominal import nominal_ts, read_nominal
     from ._io.read import loop_name, read_loop
     from ._loop import decimate

@@ -423,7 +423,7 @@ def diagnose_entry(entry: dict, op, pv, ts, settings, *, enable_x64: bool = Fals
     A diagnosis compiles hundreds of MB of programs per record length (14 ISDB
     loops: 3.9 GB kept over 7 lengths), so a process drops them when the length
     changes: callers send loops in order of length."""
-    from ._diagnose import diagnose
+    from ._diagnose.diagnose import diagnose
 
     if enable_x64:
         jax.config.update("jax_enable_x64", True)
@@ -466,7 +466,7 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
     after each diagnosis; `scheduler`: a Dask scheduler address or
     `dask.distributed.Client`, to run one task per loop on the cluster. Returns new
     entries, in the same order."""
-    from ._diagnose import DiagnoseSettings
+    from ._diagnose.settings import DiagnoseSettings
 
     settings = DiagnoseSettings() if settings is None else settings
     by_name = {it[0]: it for it in items}

@@ -12,14 +12,15 @@ import pytest
 from test_cli import _assert_one_line_error, _csv, run
 
 import jaxstiction as js
-from jaxstiction._candidates import _quantisation, _refit_b
-from jaxstiction._characteristic import characteristic_statistics, RANGEABILITIES, rangeability_profile
-from jaxstiction._diagnose import _ranked, INPUT_FAMILIES
-from jaxstiction._drift import _neg_loglik, drift_noise_model, drift_test
+from jaxstiction._diagnose.candidates import _quantisation, _refit_b
+from jaxstiction._diagnose.characteristic import characteristic_statistics, RANGEABILITIES, rangeability_profile
+from jaxstiction._diagnose.diagnose import _ranked
+from jaxstiction._diagnose.drift import _neg_loglik, drift_noise_model, drift_test
+from jaxstiction._diagnose.heldout import _band_statistics, Finding
+from jaxstiction._diagnose.joint import _slip_on_proven_band
+from jaxstiction._diagnose.locate import cross_correlation, segment_power, spectrum_lines, whiteness
+from jaxstiction._diagnose.settings import INPUT_FAMILIES
 from jaxstiction._filters import lfilter
-from jaxstiction._joint import _slip_on_proven_band
-from jaxstiction._locate import cross_correlation, segment_power, spectrum_lines, whiteness
-from jaxstiction._proof import _band_statistics, Finding
 
 
 FAST = js.DiagnoseSettings(bootstrap=19)

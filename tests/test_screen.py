@@ -80,7 +80,7 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
     screen's test, or failing, leaves the screen's cause and says so in the note.
     The same on a Dask cluster, one task per loop (an in-process LocalCluster, so
     the patched `diagnose` is the one its worker calls)."""
-    from jaxstiction import _diagnose
+    from jaxstiction._diagnose import diagnose as _diagnose  # the module the screen calls `diagnose` from
     from jaxstiction._screen import diagnose_causes
 
     n = 300

@@ -12,7 +12,6 @@ fit of a found line, and the PV lattice of a quantised sensor.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -20,16 +19,13 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, TravelLimits
-from ._estimate.physical import _delay, fit_oe
-from ._estimate.reduce import fit_noise_model
-from ._filters import lagged, lfilter
-from ._linalg import lstsq
-from ._models import LoopModel, scaled_loop_model
-
-
-if TYPE_CHECKING:
-    from ._diagnose import DiagnoseSettings
+from .._blocks import ActuatorLag, Deadband, DeadTime, EqualPercentage, Kano, TravelLimits
+from .._estimate.physical import _delay, fit_oe
+from .._estimate.reduce import fit_noise_model
+from .._filters import lagged, lfilter
+from .._linalg import lstsq
+from .._models import LoopModel, scaled_loop_model
+from .settings import DiagnoseSettings
 
 
 def _stack(blocks):

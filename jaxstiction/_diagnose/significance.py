@@ -15,32 +15,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ._candidates import (
-    _arma11,
-    _family_paths,
-    _input_candidates,
-    _linear_valve_nominal,
-    _refit_b,
-    _statistics,
-)
-from ._characteristic import characteristic_statistics
-from ._drift import drift_test
-from ._filters import lagged, lfilter
-from ._linalg import lstsq
-from ._locate import locate
-from ._misc import release_programs_near_map_limit, thread_map
-from ._models import LinearProcess, LoopModel, NoiseModel
-from ._proof import _bootstrap_noise, _jit_scored, _normal_sf, _null_tail
-
-
-if TYPE_CHECKING:
-    from ._diagnose import DiagnoseSettings
+from .._checks import check_loop
+from .._filters import lagged, lfilter
+from .._linalg import lstsq
+from .._misc import release_programs_near_map_limit, thread_map
+from .._models import LinearProcess, LoopModel, NoiseModel
+from .candidates import _arma11, _family_paths, _input_candidates, _linear_valve_nominal, _refit_b, _statistics
+from .characteristic import characteristic_statistics
+from .drift import drift_test
+from .heldout import _bootstrap_noise, _jit_scored, _normal_sf, _null_tail
+from .locate import locate
+from .settings import DiagnoseSettings
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -91,8 +81,6 @@ class _Baseline:
 def _baseline(loop, nominal, settings: DiagnoseSettings, say, name: str = "loop") -> _Baseline:
     """Check the record, fit a linear-valve nominal when none is given, locate the
     mismatch and set up the refits (see `_Baseline`)."""
-    from ._checks import check_loop
-
     if np.ndim(loop.op) != 1:
         raise ValueError("diagnose takes one loop, not a batch")
     mask = np.asarray(loop.mask) > 0

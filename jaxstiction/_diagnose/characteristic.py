@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._blocks import EqualPercentage
-from ._filters import lfilter
+from .._blocks import EqualPercentage
+from .._filters import lfilter
 
 
 # NumPy constants: importing the package must not create a JAX backend

@@ -1,6 +1,6 @@
 """Stiction refitted jointly with the linear part, for a loop with no nominal model.
 
-The grid candidates of [`jaxstiction._candidates`] hold the nominal's poles, which a
+The grid candidates of [`jaxstiction._diagnose.candidates`] hold the nominal's poles, which a
 linear-valve fit to a sticky loop gets wrong; here [`jaxstiction.estimate`][] fits a
 Kano valve, a deadband and a linear valve, each with a Box–Jenkins linear part, and
 their gains are judged against a bootstrap of whole refits.
@@ -10,21 +10,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ._estimate.estimate import estimate
-from ._loop import make_loop
-from ._misc import thread_map
-from ._proof import _bootstrap_noise, _jit_scored, _null_tail, _prove, _revised, Finding
-from ._verdict.verdict import usable
-
-
-if TYPE_CHECKING:
-    from ._diagnose import DiagnoseSettings
+from .._estimate.estimate import estimate
+from .._loop import make_loop
+from .._misc import thread_map
+from .._verdict.verdict import usable
+from .heldout import _bootstrap_noise, _jit_scored, _null_tail, _prove, _revised, Finding
+from .settings import DiagnoseSettings
 
 
 def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: DiagnoseSettings, say):

@@ -4,9 +4,10 @@ name the missing physics, model it, and prove the gain on held-out data.
 A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the library
 (or two), refitted. The steps:
 
-1. **Locate** ([`jaxstiction._locate`]): tests on the simulation residual and on the
+1. **Locate** ([`jaxstiction._diagnose.locate`]): tests on the simulation residual and on the
    one-step error of a refitted noise model.
-2. **Name** ([`jaxstiction._candidates`], [`jaxstiction._significance`]). Every
+2. **Name** ([`jaxstiction._diagnose.candidates`],
+   [`jaxstiction._diagnose.significance`]). Every
    input-side candidate family (stiction, deadband, dead time, valve characteristic,
    travel limit, actuator lag) is added to the nominal model on a grid of its
    parameters, the linear part refitted by least squares at each point
@@ -17,12 +18,13 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
    bootstrap (the refitted nominal model plus noise from its fitted noise model,
    with the recorded OP), a normal approximation of each family's null tail, and a
    Bonferroni correction over the families. Drift has its own likelihood-ratio test
-   ([`jaxstiction._drift`]) on the nominal's residual, judged by its (conservative)
+   ([`jaxstiction._diagnose.drift`]) on the nominal's residual, judged by its (conservative)
    chi-bar-squared null. A valve characteristic is also tested by the operating
-   point the nominal states ([`jaxstiction._characteristic`]: an equal-percentage
+   point the nominal states ([`jaxstiction._diagnose.characteristic`]: an equal-percentage
    block added with nothing refitted), which the refit of B and the offset hides.
-3. **Model and prove** ([`jaxstiction._proof`]; without a nominal model, stiction
-   also jointly with the linear part, [`jaxstiction._joint`]). Each significant family's best block is added to the
+3. **Model and prove** ([`jaxstiction._diagnose.heldout`], [`jaxstiction._diagnose.proof`];
+   without a nominal model, stiction also jointly with the linear part,
+   [`jaxstiction._diagnose.joint`]). Each significant family's best block is added to the
    nominal: input blocks with B and the offset refitted, output blocks (oscillation,
    drift) to the nominal as it is. It is scored on the held-out samples (simulation
    fitness from an estimated initial state, one-step and k-step prediction errors).
@@ -41,43 +43,35 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._blocks import EqualPercentage, Sinusoid
-from ._candidates import _arma11, _fit_sinusoid, _quantisation
-from ._characteristic import rangeability_profile
-from ._checks import check_counts, is_count
-from ._drift import drift_noise_model
-from ._estimate.settings import SCREEN_ESTIMATE, Settings
-from ._filters import lfilter
-from ._joint import _joint_stiction
-from ._locate import ar_whiten, spectrum_lines, whiteness
-from ._models import LoopModel, NoiseModel
-from ._proof import (
+from .._blocks import EqualPercentage, Sinusoid
+from .._filters import lfilter
+from .._models import LoopModel, NoiseModel
+from .candidates import _arma11, _fit_sinusoid, _quantisation
+from .characteristic import rangeability_profile
+from .drift import drift_noise_model
+from .heldout import (
     _add_output,
     _diff,
     _heldout,
     _jit_scored,
     _normal_sf,
-    _Proof,
     _prove,
     _residual_cross_correlation,
     _revised,
     Finding,
     K_STEP,
 )
-from ._significance import _Baseline, _baseline, _Grid, _Significance, _significance
-
-
-VERDICTS = ("none", "stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag",
-            "external_oscillation", "drift", "quantization")
-OUTPUT_FAMILIES = ("external_oscillation", "drift")
-INPUT_FAMILIES = ("stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag")
+from .joint import _joint_stiction
+from .locate import ar_whiten, spectrum_lines, whiteness
+from .proof import _Proof
+from .settings import DiagnoseSettings, INPUT_FAMILIES, OUTPUT_FAMILIES
+from .significance import _Baseline, _baseline, _Grid, _Significance, _significance
 
 
 class Diagnosis(eqx.Module):
@@ -116,52 +110,6 @@ class Diagnosis(eqx.Module):
             "samples": {"estimation": self.n_estimation,
                         "heldout": int(len(self.series["pv"]) - self.n_estimation)},
         }
-
-
-# The joint stiction fit: the screen's profile, with the S and J intervals also read
-# off the wider Box-Jenkins grid (`PhysicalSettings.interval_span`), which moves no
-# point estimate. On P1 (S 3, J 1) diagnosed without a nominal model, seeds 0-19, the
-# intervals held the truth on 8 (S) and 14 (J) of 20 seeds without it, 14 and 17 with
-# it (S on 14 of the 15 seeds named stiction; the others' fits found another band),
-# for 1-3 s more per diagnosis.
-JOINT_ESTIMATE = dataclasses.replace(
-    SCREEN_ESTIMATE, physical=dataclasses.replace(SCREEN_ESTIMATE.physical, interval_span=4.0))
-
-
-@dataclasses.dataclass(frozen=True)
-class DiagnoseSettings:
-    """`holdout`: fraction of the record held out at its end, in (0, 1); `bootstrap`:
-    parametric bootstrap replicates, at least 2 (each family's null is a normal
-    approximation of their statistics, so its p-values are not limited to
-    1/(bootstrap+1); 19 or more are advised); `alpha`:
-    family-wise significance level; `order`: linear order when no nominal model is
-    given; `max_delay`: delays tried then; `grid`: points per axis of the stiction and
-    deadband grids; `periods`: periods tried for an external oscillation.
-
-    Without a nominal model, stiction is also refitted jointly with the linear part
-    (poles free) by [`jaxstiction.estimate`][] with settings `joint` (default:
-    `JOINT_ESTIMATE`), its significance from `joint_bootstrap` replicates of that
-    whole fit (0 turns the joint fit off)."""
-
-    holdout: float = 1 / 3
-    bootstrap: int = 39
-    alpha: float = 0.05
-    order: int = 2
-    max_delay: int = 4
-    grid: int = 36
-    periods: int = 48
-    seed: int = 0
-    joint: Settings = JOINT_ESTIMATE
-    joint_bootstrap: int = 9
-
-    def __post_init__(self):
-        if not (isinstance(self.holdout, (int, float)) and 0.0 < self.holdout < 1.0):
-            raise ValueError(f"`holdout` must be a fraction between 0 and 1 (the held-out part), got {self.holdout!r}")
-        if not is_count(self.bootstrap, 2):
-            raise ValueError(f"`bootstrap` must be a whole number of replicates, at least 2, got {self.bootstrap!r}")
-        check_counts(self, nonnegative=("joint_bootstrap",))
-        if not (isinstance(self.alpha, (int, float)) and 0.0 < self.alpha < 1.0):
-            raise ValueError(f"`alpha` must be a significance level between 0 and 1, got {self.alpha!r}")
 
 
 def _ranked(accepted: list[Finding]) -> list[Finding]:
