@@ -63,7 +63,7 @@ from jaxstiction import (  # noqa: E402
 )
 from jaxstiction._cli import screen_settings  # noqa: E402
 from jaxstiction._scenarios import nominal_model  # noqa: E402
-from jaxstiction._screen import screen_loops  # noqa: E402
+from jaxstiction._screen.screen import screen_loops  # noqa: E402
 
 
 KINDS = ("stiction", "none", "tight", "external", "deadband", "small_slip")

@@ -87,14 +87,9 @@ from ._models import (
     SplineValve as SplineValve,
 )
 from ._scenarios import make_scenario as make_scenario, Scenario as Scenario, SCENARIOS as SCENARIOS
-from ._screen import (
-    rank as rank,
-    screen as screen,
-    screen_loops as screen_loops,
-    ScreenReport as ScreenReport,
-    ScreenSettings as ScreenSettings,
-    write_screen_outputs as write_screen_outputs,
-)
+from ._screen.outputs import write_screen_outputs as write_screen_outputs
+from ._screen.screen import rank as rank, screen as screen, screen_loops as screen_loops, ScreenReport as ScreenReport
+from ._screen.settings import ScreenSettings as ScreenSettings
 from ._simulate import Experiment as Experiment, LoopRecord as LoopRecord, simulate_loop as simulate_loop
 from ._spline import (
     direction as direction,

@@ -167,7 +167,7 @@ def cmd_fit(args):
 def screen_settings(args):
     """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`)."""
     from ._estimate.settings import FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE
-    from ._screen import ScreenSettings
+    from ._screen.settings import ScreenSettings
 
     estimate = FULL_SEARCH_ESTIMATE if args.full_search else SCREEN_ESTIMATE
     if args.max_delay is not None:
@@ -176,7 +176,8 @@ def screen_settings(args):
 
 
 def cmd_screen(args):
-    from ._screen import screen, write_screen_outputs
+    from ._screen.outputs import write_screen_outputs
+    from ._screen.screen import screen
 
     progress = not args.json and sys.stderr.isatty() and not args.quiet
     t0 = time.time()

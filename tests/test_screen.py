@@ -15,7 +15,8 @@ from test_estimate import _loop, SMALL
 import jaxstiction as js
 from jaxstiction._criteria import predicted
 from jaxstiction._filters import fitness
-from jaxstiction._screen import bucket_length, chunk_size, rank
+from jaxstiction._screen.batch import bucket_length, chunk_size
+from jaxstiction._screen.screen import rank
 from jaxstiction._verdict.verdict import residual_line
 
 
@@ -80,8 +81,7 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
     screen's test, or failing, leaves the screen's cause and says so in the note.
     The same on a Dask cluster, one task per loop (an in-process LocalCluster, so
     the patched `diagnose` is the one its worker calls)."""
-    from jaxstiction._diagnose import diagnose as _diagnose  # the module the screen calls `diagnose` from
-    from jaxstiction._screen import diagnose_causes
+    from jaxstiction._screen import causes  # the module the screen calls `diagnose` from
 
     n = 300
     rng = np.random.default_rng(0)
@@ -105,15 +105,15 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
         return type("D", (), {"verdict": verdict, "runner_up": "drift", "accepted": (verdict,),
                               "findings": (Found(verdict, True), Found("drift", False))})()
 
-    monkeypatch.setattr(_diagnose, "diagnose", fake)
+    monkeypatch.setattr(causes, "diagnose", fake)
     ticks = []
     if on == "process":
-        out = diagnose_causes(results, items, progress=ticks.append)
+        out = causes.diagnose_causes(results, items, progress=ticks.append)
     else:
         distributed = pytest.importorskip("dask.distributed")
         with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                       dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-            out = diagnose_causes(results, items, progress=ticks.append, scheduler=client)
+            out = causes.diagnose_causes(results, items, progress=ticks.append, scheduler=client)
     assert sorted(seen) == [(n, 1.0, None), (n, 3.0, None), (n, 4.0, None)] and ticks == [1, 1, 1]
     assert sorted(names) == ["a", "c", "d"]  # a data error would name the loop
     a, b, c, d, e = out
@@ -130,7 +130,7 @@ def test_read_items_names_are_unique_across_folders(tmp_path):
     """Two units exporting the same tag: both loops are read, the second named by its
     folder (every entry, note and diagnosis is keyed by name); `recursive` finds the
     loops in subfolders."""
-    from jaxstiction._screen import read_items
+    from jaxstiction._screen.screen import read_items
 
     rng = np.random.default_rng(1)
     for unit in ("unit1", "unit2"):
@@ -148,7 +148,7 @@ def test_read_items_names_are_unique_across_folders(tmp_path):
 def test_read_items_reads_every_tag_of_a_historian_export(tmp_path):
     """A CSV file with tagged columns of two loops gives two items, named like the
     loops of a `.mat` file (`file:TAG`)."""
-    from jaxstiction._screen import read_items
+    from jaxstiction._screen.screen import read_items
 
     rng = np.random.default_rng(2)
     op, pv = 50 + rng.normal(0, 1, (2, 600)), rng.normal(0, 1, (2, 600))
@@ -166,7 +166,7 @@ def test_read_items_decimates_every_record(tmp_path):
     """`decimate=k`: every record at k times the sampling time (block means); a bad
     factor fails before any file is read."""
     from jaxstiction import screen
-    from jaxstiction._screen import read_items
+    from jaxstiction._screen.screen import read_items
 
     rng = np.random.default_rng(3)
     op, pv = 50 + rng.normal(0, 1, 4002), rng.normal(0, 1, 4002)

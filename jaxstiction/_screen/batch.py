@@ -1,0 +1,231 @@
+r"""Fleet screening: many loops through one batched, jitted estimate and verdict.
+
+Loops are bucketed by length (a ladder of lengths ~√2 apart), padded and masked
+inside a bucket, and fitted in chunks of a fixed size by one compiled call of
+`vmap(estimate + verdict)`, so compilation is paid once per bucket, and never per
+loop. Nothing loops over loops in Python inside a chunk. A loop with bad data is
+stopped on the host with a one-line message before it reaches a chunk; a loop
+whose fit fails inside a chunk gets its own result code; a chunk that fails as a
+whole (an XLA error, memory) is re-run one loop at a time, so only the loop that
+caused it loses its result.
+
+Chunks run in this process, on every local JAX device in turn, or as tasks on a
+Dask cluster (`scheduler=`), each task one batched fit; with `diagnose`, each
+loop's diagnosis is one more task.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+import threading
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from .._checks import error_line
+from .._estimate.estimate import estimate
+from .._estimate.report import report
+from .._estimate.result import delay_note, held_out_note, KINDS, RESULTS
+from .._estimate.settings import Settings
+from .._loop import Loop, make_loop, stack
+from .._misc import json_number as _r, thread_map
+from .._verdict.settings import VerdictSettings
+from .._verdict.verdict import CAUSES, usable, verdict
+from .settings import ScreenSettings
+
+
+def bucket_length(n: int) -> int:
+    """The padded length of a bucket holding `n`-sample loops: the first of 500,
+    800, 1000, 1500, 2000, 2900, 4000, … (500 × √2^k rounded up to 100) that is
+    at least `n`."""
+    k = 0
+    while True:
+        b = int(math.ceil(500 * 2 ** (k / 2) / 100) * 100)
+        if b >= n:
+            return b
+        k += 1
+
+
+def chunk_size(length: int, settings: ScreenSettings) -> int:
+    """Loops per batched call for a bucket of `length` samples."""
+    return max(1, min(settings.chunk, settings.samples_per_call // max(length, 1)))
+
+
+@eqx.filter_jit
+def _verdicts(fits, loops: Loop, vset: VerdictSettings):
+    return eqx.filter_vmap(lambda f, lp: verdict(f, lp, vset))(fits, loops)
+
+
+def _batch(loops: Loop, settings: Settings, vset: VerdictSettings):
+    # `filter_vmap` of the jitted `estimate` (the documented batched contract): its
+    # compiled batch is shared with any other such call of the same shapes.
+    fits = eqx.filter_vmap(lambda lp: estimate(lp, settings))(loops)
+    return fits, _verdicts(fits, loops, vset)
+
+
+def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool) -> dict:
+    """One loop's screen entry (JSON-ready, plus a `figure` of NumPy arrays when
+    `pictures`) from its unbatched host-side fit and verdict."""
+    converged = bool(fit.result == RESULTS.successful)
+    ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
+    cause = CAUSES[int(ver.cause)]
+    notes = [RESULTS[fit.result] if not converged else "", delay_note(fit.delay, fit.kind, settings) if ok else "",
+             held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation) if ok else "",
+             (f"the Kano valve leaves the linear fit's oscillation (period {float(ver.period):.0f} samples) in "
+              "its residual: a disturbance from elsewhere, not the valve's cycle") if ok and bool(ver.line_persists)
+             else ""]
+    rec = {
+        "name": name,
+        "file": file,
+        "status": "ok" if ok else RESULTS[fit.result],
+        "converged": converged,
+        "note": "; ".join(n for n in notes if n),
+        "samples": int(op.shape[0]),
+        "Ts": float(ts),
+        "stiction_detected": bool(ver.stiction_detected),
+        "cause": cause if ok else None,
+        "slip_identified": bool(ver.slip_identified) if ok else None,
+        # the Kano fit's band, which the verdict judges, whichever family `estimate`
+        # chose (the linear valve's band is 0)
+        "band_percent": _r(fit.S if math.isfinite(float(fit.S)) else fit.band_percent),
+        "fitness": _r(fit.fitness),
+        "S": _r(fit.S),
+        "J": _r(fit.J),
+        "evidence": _r(ver.evidence),
+        "evidence_estimation": _r(ver.evidence_estimation),
+        "evidence_prediction": _r(ver.evidence_prediction),
+        "evidence_prediction_estimation": _r(ver.evidence_prediction_estimation),
+        "slip_evidence": _r(ver.slip_evidence),
+        "slip_evidence_estimation": _r(ver.slip_evidence_estimation),
+        "band_fraction": _r(ver.band_fraction, 4),
+        "fitness_kano": _r(fit.fitness_physical),
+        "fitness_linear": _r(fit.fitness_linear),
+        "fitness_deadband": _r(fit.fitness_deadband),
+        "oscillation": _r(ver.oscillation),
+        "period_samples": _r(ver.period, 1),
+        "oscillation_kano": _r(ver.oscillation_kano),
+        "model": KINDS[int(fit.kind)],
+        "delay": int(fit.delay),
+    }
+    if pictures and ok:
+        jfit = jax.tree.map(jax.numpy.asarray, fit)
+        r = report(jfit, op, pv, name=name, ts=ts, settings=settings)
+        rec["figure"] = dict(op=r.op, pv=r.pv, pv_sim=r.pv_sim, valve_u=r.valve_u, valve_up=r.valve_up,
+                             valve_down=r.valve_down, n_estimation=r.n_estimation, kind=r.model_kind)
+    return rec
+
+
+def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSettings = ScreenSettings(),
+              *, pictures: bool = False, enable_x64: bool = False, device=None) -> list[dict]:
+    """Fit one chunk of loops in one batched call and return their entries.
+
+    `items`: `(name, file, op, pv, ts)` tuples (NumPy arrays, already checked),
+    padded to `length` samples and, with repeats of the first loop that are then
+    dropped, to `size` loops, so every chunk of a bucket has one shape. A top-level
+    function of plain arguments, so a Dask worker can run it; `enable_x64` turns on
+    float64 in that worker (the application's choice, as the CLI's).
+    """
+    if enable_x64:
+        jax.config.update("jax_enable_x64", True)
+    items = list(items)
+    loops = [make_loop(op, pv, ts) for (_, _, op, pv, ts) in items]
+    loops += [loops[0]] * (size - len(loops))
+    try:
+        batch = stack(loops, length)
+        if device is not None:
+            batch = jax.device_put(batch, device)
+        fits, vers = _batch(batch, settings.estimate, settings.verdict)
+        fits, vers = jax.tree.map(np.asarray, (fits, vers))
+    except Exception as e:  # noqa: BLE001 - an XLA failure must cost only its own loops
+        if len(items) > 1:
+            out = []
+            for it in items:
+                out += run_chunk([it], length, 1, settings, pictures=pictures)
+            return out
+        name, file, op, pv, ts = items[0]
+        return [_error(name, file, f"fit failed: {error_line(e, 300)}", op.shape[0], ts)]
+    out = []
+    for i, (name, file, op, pv, ts) in enumerate(items):
+        fit, ver = jax.tree.map(lambda x: np.asarray(x[i]), (fits, vers))
+        try:
+            out.append(_record(name, file, op, pv, ts, fit, ver, settings.estimate, pictures))
+        except Exception as e:  # noqa: BLE001
+            out.append(_error(name, file, f"report failed: {error_line(e, 300)}", op.shape[0], ts))
+    return out
+
+
+def _error(name, file, message, samples=None, ts=None) -> dict:
+    return {"name": name, "file": file, "status": message, "samples": samples, "Ts": ts,
+            "stiction_detected": False, "cause": None, "band_percent": None, "fitness": None}
+
+
+def _chunks(items, settings: ScreenSettings):
+    """`(length, size, members)` for every chunk: bucketed by length, in order."""
+    buckets: dict[int, list] = {}
+    for it in items:
+        buckets.setdefault(bucket_length(it[2].shape[0]), []).append(it)
+    for length in sorted(buckets):
+        size = chunk_size(length, settings)
+        members = buckets[length]
+        for i in range(0, len(members), size):
+            yield length, size, members[i : i + size]
+
+
+def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
+    chunks = list(_chunks(items, settings))
+    if scheduler is not None:
+        return _run_dask(chunks, settings, progress, scheduler, pictures)
+    devices = jax.local_devices()
+    lock = threading.Lock()
+
+    def one(indexed):
+        k, (length, size, members) = indexed
+        dev = devices[k % len(devices)] if len(devices) > 1 else None
+        out = run_chunk(members, length, size, settings, pictures=pictures, device=dev)
+        if progress is not None:
+            with lock:
+                progress(len(members))
+        return out
+
+    # bucket by bucket: its first chunk alone (the call compiles the bucket's
+    # program once), the others `settings.threads` at a time
+    out = []
+    for _, bucket in itertools.groupby(enumerate(chunks), key=lambda kc: kc[1][:2]):
+        out += [r for part in thread_map(one, bucket, settings.threads) for r in part]
+    return out
+
+
+@contextlib.contextmanager
+def _dask_client(scheduler):
+    """`(client, as_completed)` for a Dask scheduler address or `Client`; a client
+    opened here from an address is closed on exit."""
+    try:
+        from dask.distributed import as_completed, Client
+    except ImportError as e:  # pragma: no cover - depends on the install
+        raise ValueError("--scheduler needs dask.distributed: pip install 'jaxstiction[dask]'") from e
+    if isinstance(scheduler, Client):
+        yield scheduler, as_completed
+        return
+    with Client(scheduler) as client:
+        yield client, as_completed
+
+
+def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
+    x64 = bool(jax.config.jax_enable_x64)
+    with _dask_client(scheduler) as (client, as_completed):
+        futures = {client.submit(run_chunk, members, length, size, settings, pictures=pictures, enable_x64=x64,
+                                 pure=False): members for length, size, members in chunks}
+        out = []
+        for fut in as_completed(futures):
+            members = futures[fut]
+            try:
+                out += fut.result()
+            except Exception as e:  # noqa: BLE001 - a lost worker costs only its chunk
+                out += [_error(m[0], m[1], f"task failed: {error_line(e, 300)}", m[2].shape[0], m[4]) for m in members]
+            if progress is not None:
+                progress(len(members))
+        return out

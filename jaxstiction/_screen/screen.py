@@ -1,0 +1,213 @@
+r"""Screening a fleet: read and check every loop, fit and judge them in batches
+(`batch`), name the causes of the others (`causes`), and rank them:
+[`jaxstiction.screen`][], [`jaxstiction.screen_loops`][], [`jaxstiction.rank`][]
+and [`jaxstiction.ScreenReport`][]."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import sys
+import warnings
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._checks import error_line, LoopDataError, LoopDataWarning, one_line
+from .._estimate.report import checked
+from .._io.read import find_loop_files, list_loops, loop_name, read_loop
+from .._loop import decimate as decimated, decimation_factor, Loop
+from .batch import _dask_client, _error, _run
+from .causes import _to_diagnose, diagnose_causes
+from .settings import ScreenSettings
+
+
+def _unique_name(name: str, path: Path, taken: set) -> str:
+    """`name`, or when another loop has it already, `folder/name` (then `name#k`):
+    every entry, note and diagnosis is keyed by name."""
+    for candidate in (name, f"{path.parent.name}/{name}"):
+        if candidate not in taken:
+            return candidate
+    k = 2
+    while f"{name}#{k}" in taken:
+        k += 1
+    return f"{name}#{k}"
+
+
+def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings(),
+               recursive: bool = False, decimate: int = 1):
+    """Read and check every loop under `paths` (files and folders, their subfolders
+    too with `recursive`; a `.mat` file, or a CSV file with tagged columns, may hold
+    several loops: see [`jaxstiction.list_loops`][]). Returns `(items,
+    errors, warned)`: `(name, file, op, pv, ts)` tuples ready to fit, error entries
+    (one line each) for the loops that cannot be, and the
+    [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name. Names
+    are unique: a name met again gets its folder in front (`unit2/FC101`). Every
+    record is decimated by `decimate` (see [`jaxstiction.decimate`][]) before it is
+    checked."""
+    items, errors, warned = [], [], {}
+    taken: set[str] = set()
+    for path in find_loop_files(paths, recursive=recursive):
+        try:
+            names: list[str | None] = list(list_loops(path)) or [None]
+        except Exception as e:  # noqa: BLE001 - a bad file is that file's error
+            name = _unique_name(path.stem, path, taken)
+            taken.add(name)
+            errors.append(_error(name, str(path), _message(e)))
+            continue
+        for sub in names:
+            name = _unique_name(loop_name(path) if not sub else f"{path.stem}:{sub}", path, taken)
+            taken.add(name)
+            try:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", LoopDataWarning)
+                    loop = decimated(read_loop(path, ts=ts, name=sub), decimate)
+                op, pv = checked(np.asarray(loop.op), np.asarray(loop.pv), name, settings.estimate)
+                items.append((name, str(path), op, pv, float(loop.ts)))
+                said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
+                if said:
+                    warned[name] = "; ".join(said)
+                for w in caught:  # any other warning goes on as it would have
+                    if not issubclass(w.category, LoopDataWarning):
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+            except Exception as e:  # noqa: BLE001
+                errors.append(_error(name, str(path), _message(e)))
+    return items, errors, warned
+
+
+def _message(e: BaseException) -> str:
+    if isinstance(e, (LoopDataError, ValueError, OSError)):
+        return one_line(e)[:300]
+    return f"unreadable: {error_line(e, 300)}"
+
+
+def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSettings = ScreenSettings(), *,
+                 progress: Callable[[int], Any] | None = None, scheduler: Any = None,
+                 pictures: bool = False) -> list[dict]:
+    """Screen loops already in memory. `loops`: a mapping name → [`jaxstiction.Loop`][]
+    (real samples only), or `(name, file, op, pv, ts)` items as from `read_items`.
+    Returns one entry per loop, in input order (see [`jaxstiction.screen`][])."""
+    if isinstance(loops, Mapping):
+        items, errors = [], []
+        for name, lp in loops.items():
+            try:
+                op, pv = _checked_loop(lp, name, settings)
+                items.append((name, None, op, pv, float(np.asarray(lp.ts))))
+            except ValueError as e:
+                errors.append(_error(name, None, _message(e)))
+    else:
+        items, errors = list(loops), []
+    order = {it[0]: i for i, it in enumerate(items)}
+    results = errors + _run(items, settings, progress, scheduler, pictures)
+    return sorted(results, key=lambda r: order.get(r["name"], -1))
+
+
+def _checked_loop(lp: Loop, name, settings):
+    m = np.asarray(lp.mask) > 0
+    return checked(np.asarray(lp.op)[m], np.asarray(lp.pv)[m], name, settings.estimate)
+
+
+def rank(results: Iterable[dict]) -> list[dict]:
+    """Loops ranked by stiction evidence and severity: sticky loops first (largest
+    held-out gain of the Kano valve over a linear one, in simulation or in
+    short-horizon prediction, then widest band), then the other fitted loops by the
+    same evidence, then the loops that failed."""
+
+    def key(r):
+        ok = r["status"] == "ok"
+        gains = [g for g in (r.get("evidence"), r.get("evidence_prediction")) if g is not None]
+        ev = max(gains) if gains else -1e9
+        return (not ok, not r["stiction_detected"], -ev, -(r.get("band_percent") or 0.0))
+
+    return sorted(results, key=key)
+
+
+@dataclasses.dataclass(frozen=True)
+class ScreenReport:
+    """Result of [`jaxstiction.screen`][]: `loops`, ranked (see `rank`), and counts."""
+
+    loops: list
+
+    @property
+    def counts(self) -> dict:
+        ok = sum(r["status"] == "ok" for r in self.loops)
+        return {"loops": len(self.loops), "ok": ok, "errors": len(self.loops) - ok,
+                "sticky": sum(bool(r["stiction_detected"]) for r in self.loops)}
+
+    def summary_line(self) -> str:
+        c = self.counts
+        return (f"screen: {c['loops']} loops: {c['ok']} ok, {c['errors']} error{'s' * (c['errors'] != 1)}, "
+                f"{c['sticky']} sticky")
+
+    def to_json(self) -> dict:
+        loops = [{k: v for k, v in r.items() if k != "figure"} for r in self.loops]
+        return {"loops": loops, "summary": self.counts}
+
+
+@contextlib.contextmanager
+def _progress_bar(show: bool, total: int, desc: str):
+    """A tqdm bar on stderr counting loops (its `update`), or `None` when not shown."""
+    if not (show and total):
+        yield None
+        return
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="loop", desc=desc, file=sys.stderr)
+    try:
+        yield bar.update
+    finally:
+        bar.close()
+
+
+def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
+           ts: float | None = None, progress: bool = False, scheduler: Any = None,
+           pictures: bool = False, diagnose: bool = False, recursive: bool = False,
+           decimate: int = 1) -> ScreenReport:
+    """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
+    for sticky valves, and name the cause of the others.
+
+    Each loop gets [`jaxstiction.estimate`][] (batched with the other loops of its
+    length bucket) and [`jaxstiction.verdict`][]: `stiction_detected` when Kano's
+    valve beats a linear valve on held-out data, `slip_identified` when its slip
+    jump is seen, and a `cause` (`stiction`, `external_oscillation`, `none`; with
+    `diagnose`, the diagnosis verdict of a loop not called sticky). A loop that cannot be read or fitted
+    gets `status` with a one-line error; the others are unaffected.
+
+    **Arguments:**
+
+    - `settings`: [`jaxstiction.ScreenSettings`][].
+    - `ts`: sampling time for files without a `t` column.
+    - `progress`: show a progress bar (tqdm) on stderr.
+    - `scheduler`: a Dask scheduler address (or a `dask.distributed.Client`): each
+      chunk becomes one task on the cluster (with `diagnose`, each diagnosis too).
+    - `pictures`: keep the arrays each loop's picture needs (`figure`).
+    - `recursive`: also the loop files in the folders' subfolders.
+    - `decimate`: screen every record at a `decimate` times longer sampling time
+      (the means of that many samples; [`jaxstiction.decimate`][]), for records
+      sampled much faster than their loops move.
+    - `diagnose`: name the cause of the loops not called sticky by the full
+      diagnosis (`diagnose_causes`).
+
+    **Returns:** a [`jaxstiction.ScreenReport`][].
+
+    **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
+    """
+    decimate = decimation_factor(decimate)  # a bad factor fails before any file is read
+    items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate)
+    with contextlib.ExitStack() as client_scope:
+        if scheduler is not None:  # one client for both stages
+            scheduler = client_scope.enter_context(_dask_client(scheduler))[0]
+        with _progress_bar(progress, len(items), "screen") as update:
+            results = _run(items, settings, update, scheduler, pictures)
+        if diagnose:
+            with _progress_bar(progress, sum(map(_to_diagnose, results)), "diagnose") as update:
+                results = diagnose_causes(results, items, progress=update, scheduler=scheduler)
+    for r in results:  # what the reader warned of goes first in the loop's note
+        if r["name"] in warned:
+            r["note"] = "; ".join(n for n in (warned[r["name"]], r.get("note", "")) if n)
+    return ScreenReport(loops=rank(errors + results))
+
+
