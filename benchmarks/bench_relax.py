@@ -45,11 +45,16 @@ import jax.random as jr
 import numpy as np
 import optimistix as optx
 
-from jaxstiction._blocks import Kano
-from jaxstiction._estimate.relax import relax, relax_problem
-from jaxstiction._scenarios import nominal_model, paper_experiment
-from jaxstiction._simulate import simulate_loop
-from jaxstiction._spline import hysteresis_regressors, scale_input, uniform_knots
+from jaxstiction import Kano, simulate_loop
+from jaxstiction.internal import (
+    hysteresis_regressors,
+    nominal_model,
+    paper_experiment,
+    relax,
+    relax_problem,
+    scale_input,
+    uniform_knots,
+)
 
 
 sys.path.insert(

@@ -58,12 +58,14 @@ from jaxstiction import (  # noqa: E402
     LoopModel,
     make_loop,
     NoiseModel,
+    screen_loops,  # noqa: E402
     simulate_loop,
     Sinusoid,
 )
-from jaxstiction._cli import screen_settings  # noqa: E402
-from jaxstiction._scenarios import nominal_model  # noqa: E402
-from jaxstiction._screen.screen import screen_loops  # noqa: E402
+from jaxstiction.internal import (
+    nominal_model,  # noqa: E402
+    screen_settings,  # noqa: E402
+)
 
 
 KINDS = ("stiction", "none", "tight", "external", "deadband", "small_slip")

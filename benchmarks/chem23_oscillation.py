@@ -26,7 +26,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from jaxstiction import fit, NoiseModel, read_loop, simulate_scored, Sinusoid  # noqa: E402
-from jaxstiction._diagnose.locate import spectrum_lines  # noqa: E402
+from jaxstiction.internal import spectrum_lines  # noqa: E402
 
 
 def band_power(x, period, width=0.15):

@@ -49,7 +49,7 @@ from jaxstiction import (  # noqa: E402
     Sinusoid,
     TravelLimits,
 )
-from jaxstiction._scenarios import nominal_model, p_experiment, P_N  # noqa: E402
+from jaxstiction.internal import nominal_model, p_experiment, P_N  # noqa: E402
 
 
 EXPECTED = {"P0": "none", "P1": "stiction", "P2": "dead_time", "P3": "valve_characteristic", "P4": "saturation",

@@ -6,7 +6,7 @@ the most powerful test there is.
 
 P8 hides a random walk (step standard deviation 0.3) in the PV of a loop whose noise
 is AR(1) with pole 0.9. `diagnose` tests for it on the nominal model's simulation
-residual over the 2000 estimation samples (`jaxstiction._drift.drift_test`: the
+residual over the 2000 estimation samples (`jaxstiction.internal.drift_test`: the
 likelihood gained by a random walk over the best stationary AR(1) model, the pole
 unknown). With the nominal right, that residual is exactly the noise plus the drift,
 so the question is purely statistical: how often does a record of 2000 samples show
@@ -44,10 +44,21 @@ import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
-from jaxstiction import Drift, simulate_loop  # noqa: E402
-from jaxstiction._diagnose.drift import _neg_loglik, drift_test  # noqa: E402
-from jaxstiction._diagnose.settings import DiagnoseSettings, INPUT_FAMILIES, OUTPUT_FAMILIES  # noqa: E402
-from jaxstiction._scenarios import nominal_model, p_experiment, P_N, P_SPLIT  # noqa: E402
+from jaxstiction import (  # noqa: E402
+    DiagnoseSettings,  # noqa: E402
+    Drift,
+    simulate_loop,
+)
+from jaxstiction.internal import (  # noqa: E402  # noqa: E402  # noqa: E402
+    drift_test,
+    INPUT_FAMILIES,
+    neg_loglik,
+    nominal_model,
+    OUTPUT_FAMILIES,
+    p_experiment,
+    P_N,
+    P_SPLIT,
+)
 
 
 POLE = 0.9  # the P-cases' noise colouring 1/(1 - 0.9 q^-1)
@@ -69,7 +80,7 @@ def _oracle(z, q):
     with the true pole and ratio `q` (the noise scale concentrated out)."""
     y = z - jnp.mean(z)
     a = jnp.asarray(POLE, z.dtype)
-    return _neg_loglik(y, a, jnp.zeros((), z.dtype))[0] - _neg_loglik(y, a, q)[0]
+    return neg_loglik(y, a, jnp.zeros((), z.dtype))[0] - neg_loglik(y, a, q)[0]
 
 
 def residual(seed, step):

@@ -29,7 +29,7 @@ import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxstiction import Experiment, Kano, make_loop, screen_loops, ScreenSettings, simulate_loop  # noqa: E402
-from jaxstiction._scenarios import nominal_model  # noqa: E402
+from jaxstiction.internal import nominal_model  # noqa: E402
 
 
 def fleet(count, offset=0, n=1500):

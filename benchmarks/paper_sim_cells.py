@@ -32,11 +32,13 @@ import numpy as np  # noqa: E402
 from _args import seeds_arg  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from paper_sim_seeds import _CELL_GRID, _CELL_HALF, _kano_paths  # noqa: E402
 
-from jaxstiction import Kano  # noqa: E402
-from jaxstiction._criteria import simulate_scored  # noqa: E402
-from jaxstiction._estimate.report import fit  # noqa: E402
-from jaxstiction._filters import fitness  # noqa: E402
-from jaxstiction._scenarios import make_scenario  # noqa: E402
+from jaxstiction import (
+    fit,  # noqa: E402
+    fitness,  # noqa: E402
+    Kano,  # noqa: E402
+    make_scenario,  # noqa: E402
+    simulate_scored,  # noqa: E402
+)
 
 
 BURN = 50  # samples ignored at the start, as paper_sim_seeds.py's cell

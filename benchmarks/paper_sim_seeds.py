@@ -51,13 +51,17 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
-from jaxstiction._blocks import Kano  # noqa: E402
-from jaxstiction._criteria import simulate_scored  # noqa: E402
-from jaxstiction._demo import paper_sim_case  # noqa: E402
-from jaxstiction._estimate.physical import fit_oe  # noqa: E402
-from jaxstiction._filters import fitness  # noqa: E402
-from jaxstiction._models import scaled_loop_model  # noqa: E402
-from jaxstiction._scenarios import make_scenario  # noqa: E402
+from jaxstiction import (
+    fitness,  # noqa: E402
+    Kano,  # noqa: E402
+    make_scenario,  # noqa: E402
+    simulate_scored,  # noqa: E402
+)
+from jaxstiction.internal import (
+    fit_oe,  # noqa: E402
+    paper_sim_case,  # noqa: E402
+    scaled_loop_model,  # noqa: E402
+)
 
 
 @jax.jit

@@ -1,5 +1,8 @@
 """jaxstiction: find sticky control valves and the process behind them from
-closed-loop OP/PV data, in JAX. See README.md."""
+closed-loop OP/PV data, in JAX. See README.md.
+
+This is what a user calls; `jaxstiction.internal` holds the stages and helpers
+that research code, benchmarks and tests take from inside."""
 
 import importlib.metadata
 
@@ -30,31 +33,10 @@ from ._criteria import (
     ScoreSettings as ScoreSettings,
     simulate_scored as simulate_scored,
 )
-from ._diagnose.diagnose import diagnose as diagnose, Diagnosis as Diagnosis, Finding as Finding
+from ._diagnose.diagnose import diagnose as diagnose, Diagnosis as Diagnosis
+from ._diagnose.heldout import Finding as Finding
 from ._diagnose.settings import DiagnoseSettings as DiagnoseSettings, VERDICTS as VERDICTS
 from ._estimate.estimate import estimate as estimate, min_length as min_length
-from ._estimate.gram import GramProblem as GramProblem, lag_gram as lag_gram
-from ._estimate.hammerstein import (
-    CandidateFit as CandidateFit,
-    fit_spline_candidates as fit_spline_candidates,
-    HammersteinModel as HammersteinModel,
-)
-from ._estimate.physical import fit_physical as fit_physical, PhysicalFit as PhysicalFit
-from ._estimate.reduce import (
-    asymptotic_weight as asymptotic_weight,
-    fit_noise_model as fit_noise_model,
-    LowOrder as LowOrder,
-    reduce_model as reduce_model,
-)
-from ._estimate.relax import (
-    ARXHammerstein as ARXHammerstein,
-    relax as relax,
-    relax_loss as relax_loss,
-    relax_problem as relax_problem,
-    relax_sweep as relax_sweep,
-    RelaxProblem as RelaxProblem,
-    RelaxSolution as RelaxSolution,
-)
 from ._estimate.report import fit as fit, FitReport as FitReport, report as report
 from ._estimate.result import LoopFit as LoopFit, RESULTS as RESULTS
 from ._estimate.settings import (
@@ -66,7 +48,6 @@ from ._filters import (
     fitness as fitness,
     fitness_trend_free as fitness_trend_free,
     freq_response as freq_response,
-    lagged as lagged,
     lfilter as lfilter,
     step_response as step_response,
 )
@@ -91,15 +72,6 @@ from ._screen.outputs import write_screen_outputs as write_screen_outputs
 from ._screen.screen import rank as rank, screen as screen, screen_loops as screen_loops, ScreenReport as ScreenReport
 from ._screen.settings import ScreenSettings as ScreenSettings
 from ._simulate import Experiment as Experiment, LoopRecord as LoopRecord, simulate_loop as simulate_loop
-from ._spline import (
-    direction as direction,
-    hysteresis_regressors as hysteresis_regressors,
-    noise_threshold as noise_threshold,
-    scale_input as scale_input,
-    spline_basis as spline_basis,
-    uniform_knots as uniform_knots,
-    valve_curves as valve_curves,
-)
 from ._verdict.settings import VerdictSettings as VerdictSettings
 from ._verdict.verdict import CAUSES as CAUSES, Verdict as Verdict, verdict as verdict
 

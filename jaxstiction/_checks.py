@@ -15,8 +15,6 @@ import re
 import numpy as np
 
 
-__all__ = ["LoopDataError", "check_loop", "check_counts"]
-
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
 

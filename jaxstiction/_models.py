@@ -67,7 +67,7 @@ class SplineValve(AbstractBlock):
     rule (5) when `threshold == 0`, otherwise the robust rule (the direction changes
     only once $u$ has moved more than `threshold` from its running extreme);
     $\hat x = h f_1(u) + (1 - h) f_2(u)$ with `beta` = ascent then descent
-    coefficients on [`jaxstiction.spline_basis`][]. State `(h, extreme, u_prev)`.
+    coefficients on [`jaxstiction.internal.spline_basis`][]. State `(h, extreme, u_prev)`.
     """
 
     beta: Float[Array, " p"]

@@ -23,7 +23,7 @@ def direction(u: Float[Array, " time"], *, threshold=0.0) -> Float[Array, " time
     With `threshold > 0` it is the robust rule: the direction only changes once
     the input has moved more than `threshold` away from its running extreme since
     the last change, so noise smaller than `threshold` never flips it. Tie
-    `threshold` to the OP noise level, e.g. [`jaxstiction.noise_threshold`][].
+    `threshold` to the OP noise level, e.g. [`jaxstiction.internal.noise_threshold`][].
     """
     u = jnp.asarray(u)
     threshold = jnp.asarray(threshold, u.dtype)

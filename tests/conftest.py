@@ -1,13 +1,13 @@
 import os
 import pathlib
 
-from jaxstiction._cli import _cache_folder, _lean_compiler, _xla_cache
+from jaxstiction.internal import cache_folder, lean_compiler, xla_cache
 
 
 # The command line's compiler flag (XLA's older CPU fusion code generator: under half
 # the compile memory, and faster, which is most of this suite's time). Importing the
 # package creates no JAX backend, so it still takes effect here.
-_lean_compiler()
+lean_compiler()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -21,10 +21,10 @@ import pytest  # noqa: E402
 # folder (XLA's cache is keyed by the compiled program itself, so nothing stale is
 # ever loaded). Set JAXSTICTION_CACHE to use another folder, or `off` to compile
 # everything every time.
-_cache = _cache_folder("test-xla")
+_cache = cache_folder("test-xla")
 os.environ.setdefault("JAXSTICTION_CACHE", _cache or "off")
 if _cache is not None:
-    _xla_cache(_cache)
+    xla_cache(_cache)
 
 # Identification needs float64; the library never sets it, the tests do.
 jax.config.update("jax_enable_x64", True)

@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from jaxstiction._checks import LoopDataError
+from jaxstiction import LoopDataError
 
 
 def raises_one_line(match, func, *args, **kwargs):

@@ -144,7 +144,7 @@ def relax_reference(
 
     Initialisation as the paper: B = q^-1, one sweep.  Then sweeps until the
     optimistix FixedPointIteration rule is met (or `max_steps`), or exactly `sweeps`
-    sweeps if given.  `ridge` > 0 adds Tikhonov rows like `jaxstiction._relax._lstsq`
+    sweeps if given.  `ridge` > 0 adds Tikhonov rows like `jaxstiction.internal.lstsq`
     (default: plain least squares).
     """
     y = np.asarray(y, float)

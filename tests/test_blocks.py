@@ -9,8 +9,7 @@ import jax.random as jr
 import numpy as np
 import pytest
 
-from jaxstiction._blocks import (
-    _levels,
+from jaxstiction import (
     AbstractBlock,
     ActuatorLag,
     block_name,
@@ -30,6 +29,7 @@ from jaxstiction._blocks import (
     Sinusoid,
     TravelLimits,
 )
+from jaxstiction.internal import levels
 
 
 # --------------------------------------------------------------------------------------
@@ -781,12 +781,12 @@ def _levels_reference(u, count):
 
 @pytest.mark.parametrize("count", [1, 4, 12, 80])
 def test_levels_are_the_distinct_running_extremes(count):
-    """`_levels` against a loop over the samples: the candidate slip levels are the
+    """`levels` against a loop over the samples: the candidate slip levels are the
     running extremes where they change (one per distinct first slip), wherever in the
     opening samples they fall, not the first `count` samples."""
     for seed in range(3):
         u = np.asarray(noisy_walk_input(120, seed))
-        up, dn = (np.asarray(v) for v in jax.jit(_levels, static_argnums=1)(jnp.asarray(u), count))
+        up, dn = (np.asarray(v) for v in jax.jit(levels, static_argnums=1)(jnp.asarray(u), count))
         ref_up, ref_dn = _levels_reference(u, count)
         np.testing.assert_array_equal(up, ref_up)
         np.testing.assert_array_equal(dn, ref_dn)

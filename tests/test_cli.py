@@ -117,7 +117,7 @@ def test_long_record_note(tmp_path):
     """A record longer than `LONG_RECORD` is announced with its cost and the way to
     shorten it before any fitting (here the fit then stops at the constant OP); a
     shorter one is not."""
-    from jaxstiction._cli import LONG_RECORD
+    from jaxstiction.internal import LONG_RECORD
 
     n = LONG_RECORD + 10
     f = _csv(tmp_path / "long.csv", np.full(n, 50.0), np.sin(np.arange(n) / 50.0))
@@ -179,9 +179,10 @@ def test_version():
 
 
 def test_import_leaves_the_backend_alone():
-    """Importing the package (and its command line) creates no JAX backend, so the
-    command line can still choose XLA's compiler flags, and users their platform."""
-    code = ("import jaxstiction, jaxstiction._cli, jax._src.xla_bridge as xb;"
+    """Importing the package (and `jaxstiction.internal`, which imports the command
+    line) creates no JAX backend, so the command line can still choose XLA's
+    compiler flags, and users their platform."""
+    code = ("import jaxstiction, jaxstiction.internal, jax._src.xla_bridge as xb;"
             "print(xb.backends_are_initialized())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
@@ -192,22 +193,22 @@ def test_lean_compiler_flag(monkeypatch):
     own flags, never overrides the user's own choice of it, and can be turned off."""
     import jaxlib
 
-    from jaxstiction import _cli
+    from jaxstiction.internal import cli, lean_compiler
 
-    monkeypatch.setattr(_cli, "_LEAN_COMPILER_VERIFIED", (jaxlib.__version__,))
+    monkeypatch.setattr(cli, "_LEAN_COMPILER_VERIFIED", (jaxlib.__version__,))
     monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/nowhere")
-    _cli._lean_compiler()
+    lean_compiler()
     assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/nowhere --xla_cpu_use_fusion_emitters=false"
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    _cli._lean_compiler()
+    lean_compiler()
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
     monkeypatch.setenv("XLA_FLAGS", "")
     monkeypatch.setenv("JAXSTICTION_LEAN_COMPILER", "off")
-    _cli._lean_compiler()
+    lean_compiler()
     assert os.environ["XLA_FLAGS"] == ""
     monkeypatch.delenv("JAXSTICTION_LEAN_COMPILER")
-    monkeypatch.setattr(_cli, "_LEAN_COMPILER_VERIFIED", ("0.0.",))
-    _cli._lean_compiler()
+    monkeypatch.setattr(cli, "_LEAN_COMPILER_VERIFIED", ("0.0.",))
+    lean_compiler()
     assert os.environ["XLA_FLAGS"] == ""
 
 
@@ -216,8 +217,7 @@ def test_screen_search_options_choose_the_estimator_profile():
     `--full-search` (both without the spline family), and `--max-delay` applies to
     either."""
     from jaxstiction import Settings
-    from jaxstiction._cli import build_parser, screen_settings
-    from jaxstiction._estimate.settings import SCREEN_ESTIMATE
+    from jaxstiction.internal import build_parser, SCREEN_ESTIMATE, screen_settings
 
     def settings(*argv):
         return screen_settings(build_parser().parse_args(["screen", "x.csv", *argv])).estimate

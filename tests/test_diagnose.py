@@ -12,15 +12,25 @@ import pytest
 from test_cli import _assert_one_line_error, _csv, run
 
 import jaxstiction as js
-from jaxstiction._diagnose.candidates import _quantisation, _refit_b
-from jaxstiction._diagnose.characteristic import characteristic_statistics, RANGEABILITIES, rangeability_profile
-from jaxstiction._diagnose.diagnose import _ranked
-from jaxstiction._diagnose.drift import _neg_loglik, drift_noise_model, drift_test
-from jaxstiction._diagnose.heldout import _band_statistics, Finding
-from jaxstiction._diagnose.joint import _slip_on_proven_band
-from jaxstiction._diagnose.locate import cross_correlation, segment_power, spectrum_lines, whiteness
-from jaxstiction._diagnose.settings import INPUT_FAMILIES
-from jaxstiction._filters import lfilter
+from jaxstiction import Finding, lfilter
+from jaxstiction.internal import (
+    band_statistics,
+    characteristic_statistics,
+    cross_correlation,
+    drift_noise_model,
+    drift_test,
+    INPUT_FAMILIES,
+    neg_loglik,
+    quantisation,
+    RANGEABILITIES,
+    rangeability_profile,
+    ranked,
+    refit_b,
+    segment_power,
+    slip_on_proven_band,
+    spectrum_lines,
+    whiteness,
+)
 
 
 FAST = js.DiagnoseSettings(bootstrap=19)
@@ -100,7 +110,7 @@ def test_drift_likelihood_matches_dense_gaussian(a, q):
     r = y[1:] - mu
     quad = float(r @ np.linalg.solve(cc, r))
     logdet = float(np.linalg.slogdet(cc)[1])
-    nll, s2 = _neg_loglik(jnp.asarray(y), jnp.asarray(a), jnp.asarray(q))
+    nll, s2 = neg_loglik(jnp.asarray(y), jnp.asarray(a), jnp.asarray(q))
     np.testing.assert_allclose(float(s2), quad / (n - 1), rtol=1e-6)
     np.testing.assert_allclose(float(nll), 0.5 * logdet + 0.5 * (n - 1) * np.log(quad / (n - 1)), rtol=1e-6)
 
@@ -118,10 +128,10 @@ def test_drift_noise_model_autocovariance(a, q):
 def test_quantisation_lattice():
     rng = np.random.default_rng(5)
     y = np.cumsum(rng.normal(size=2000))
-    q = _quantisation(2.0 * np.round(y / 2.0), 3.0)
+    q = quantisation(2.0 * np.round(y / 2.0), 3.0)
     assert q is not None and abs(q["step"] - 2.0) < 1e-12
-    assert _quantisation(y, 3.0) is None
-    assert _quantisation(2.0 * np.round(y / 2.0), 100.0) is None  # a step far below the noise does not matter
+    assert quantisation(y, 3.0) is None
+    assert quantisation(2.0 * np.round(y / 2.0), 100.0) is None  # a step far below the noise does not matter
 
 
 def test_refit_b_matches_numpy():
@@ -135,7 +145,7 @@ def test_refit_b_matches_numpy():
     y = y + 0.05 * rng.normal(size=n)
     w = np.ones(n)
     w[:30] = 0
-    th = np.asarray(_refit_b(jnp.asarray(x), jnp.asarray(y), jnp.asarray(w), jnp.asarray(a0), jnp.asarray(c),
+    th = np.asarray(refit_b(jnp.asarray(x), jnp.asarray(y), jnp.asarray(w), jnp.asarray(a0), jnp.asarray(c),
                              jnp.asarray(d), jnp.asarray(1), 2))
 
     def filt(b, a, v):  # direct-form difference equation, obviously correct
@@ -232,7 +242,7 @@ def test_the_larger_likelihood_ratio_ranks_the_input_blocks():
     stiction, with the far larger likelihood ratio and held-out gain, is named (it
     was `actuator_lag` while input blocks passing that test were ranked first). The
     deadband beside it is dropped because J is significant."""
-    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+    from jaxstiction.internal import nominal_model, p_experiment, P_N
 
     rec = js.simulate_loop(nominal_model(chain=(js.Kano(6.0, 2.0),)), p_experiment(),
                            jax.random.fold_in(jax.random.PRNGKey(103), 3), P_N)
@@ -260,7 +270,7 @@ def test_band_statistics_match_numpy():
     recs = np.stack([rng.standard_normal(n), rng.standard_normal(n) + 0.8 * np.sin(2 * np.pi * f0 * t + 0.3)])
     c, d = np.array([1.0, 0.3]), np.array([1.0, -0.5])
     w = (t >= 250).astype(float)
-    got = np.asarray(_band_statistics(jnp.asarray(recs), jnp.asarray(c), jnp.asarray(d), jnp.asarray(w), f0))
+    got = np.asarray(band_statistics(jnp.asarray(recs), jnp.asarray(c), jnp.asarray(d), jnp.asarray(w), f0))
     f = np.arange(4 * n + 1) / (8 * n)
     band = np.abs(f - f0) <= 0.1 * f0
     near = (f >= f0 / 2) & (f <= 2 * f0) & ~band
@@ -323,7 +333,7 @@ def test_valve_characteristic_named_from_the_operating_point():
     visits, its curvature alone is not significant (seed 102 was named `none`, with
     the nominal at about -600 % held out); the operating point, with the nominal's
     B and offsets held, names it and estimates R."""
-    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+    from jaxstiction.internal import nominal_model, p_experiment, P_N
 
     key = jax.random.PRNGKey(102)
     plant = nominal_model(chain=(js.EqualPercentage(15.0),))
@@ -345,10 +355,10 @@ def test_stochastic_effects_rank_after_proven_blocks():
     sat = _accepted("saturation", 18.0, cc=False)
     band = _accepted("external_oscillation", 85.0, stochastic=True, kind="narrow-band")
     drift = _accepted("drift", 40.0, cc=False, stochastic=True)
-    assert [f.effect for f in _ranked([band, drift, sat])] == ["saturation", "external_oscillation", "drift"]
+    assert [f.effect for f in ranked([band, drift, sat])] == ["saturation", "external_oscillation", "drift"]
     line = _accepted("external_oscillation", 85.0)
-    assert [f.effect for f in _ranked([sat, line])] == ["external_oscillation", "saturation"]
-    assert [f.effect for f in _ranked([_accepted("saturation", 90.0, cc=False), line])][0] == "saturation"
+    assert [f.effect for f in ranked([sat, line])] == ["external_oscillation", "saturation"]
+    assert [f.effect for f in ranked([_accepted("saturation", 90.0, cc=False), line])][0] == "saturation"
 
 
 def test_a_narrow_band_disturbance_is_named_without_a_gain():
@@ -357,7 +367,7 @@ def test_a_narrow_band_disturbance_is_named_without_a_gain():
     variant): the sinusoid fitted to the estimation part loses held out, but the
     band's power persists there, so it is named an external oscillation and no
     simulation gain is claimed (the model stays the nominal)."""
-    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+    from jaxstiction.internal import nominal_model, p_experiment, P_N
 
     key = jax.random.PRNGKey(100)
     plant = nominal_model(output=(js.NarrowBand(3.5, 40.0, key=jax.random.key_data(jax.random.fold_in(key, 7))),))
@@ -378,7 +388,7 @@ def test_a_narrow_band_disturbance_beside_stiction_is_a_second_block():
     is named, and the disturbance, whose sinusoid loses held out on top of the
     stiction model, is accepted as a narrow-band second block by its held-out band,
     with no gain claimed: the model stays the stiction model."""
-    from jaxstiction._scenarios import nominal_model, p_experiment, P_N
+    from jaxstiction.internal import nominal_model, p_experiment, P_N
 
     key = jax.random.PRNGKey(101)
     band = js.NarrowBand(4.0, 30.0, key=jax.random.key_data(jax.random.fold_in(key, 7)))
@@ -525,16 +535,16 @@ def test_a_significant_slip_on_a_proven_band_is_stiction():
         return (Finding("stiction", {"S": 1.9, "J": 0.7}, {**st_ev, **(st or {})}, before, after, False),
                 Finding("deadband", {"width": 0.9}, db_ev, before, {"fitness": 87.0}, db_ok))
 
-    st, db = _slip_on_proven_band(*pair(), lr_slip=785.0)
+    st, db = slip_on_proven_band(*pair(), lr_slip=785.0)
     assert st.accepted and not db.accepted
     assert st.evidence["band_heldout_gain"] == 6.6 and "subsumed" in db.evidence["note"]
     assert st.heldout_after == after  # the Kano valve's own figures, not the deadband's
     for args, lr_slip in [(pair(), 3.0), (pair(db_ok=False), 785.0), (pair({"heldout_gain_over_linear": 1.0}), 785.0),
                           (pair({"significant": False}), 785.0)]:
-        st, db = _slip_on_proven_band(*args, lr_slip=lr_slip)
+        st, db = slip_on_proven_band(*args, lr_slip=lr_slip)
         assert (st.accepted, db.accepted) == (False, args[1].accepted)
         assert "note" not in st.evidence
-    st, db = _slip_on_proven_band(pair()[0], None, lr_slip=785.0)
+    st, db = slip_on_proven_band(pair()[0], None, lr_slip=785.0)
     assert not st.accepted and db is None
 
 
@@ -542,7 +552,7 @@ def test_a_significant_slip_on_a_proven_band_is_stiction():
 def test_programs_released_near_the_map_limit():
     """Compiled programs hold memory maps; past the share of the kernel's limit the
     guard `diagnose` runs clears them (the count drops), and jitted code still runs."""
-    from jaxstiction._misc import release_programs_near_map_limit
+    from jaxstiction.internal import release_programs_near_map_limit
 
     def maps():
         with open(f"/proc/{os.getpid()}/maps") as f:

@@ -13,9 +13,7 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._estimate.estimate import _estimate_traced, choose_family
-from jaxstiction._estimate.result import held_out_note
-from jaxstiction._scenarios import nominal_model, paper_experiment
+from jaxstiction.internal import choose_family, estimate_traced, held_out_note, nominal_model, paper_experiment
 
 
 # Reduced settings: the same pipeline with smaller grids and fewer candidates (one knot
@@ -115,11 +113,11 @@ def test_padding_does_not_change_the_answer(loops, singles):
 
 def test_no_retracing_for_new_data_of_one_shape(loops, singles):
     """New data of an already-seen shape reuses the compiled estimate."""
-    before = eqx.debug.get_num_traces(_estimate_traced)
+    before = eqx.debug.get_num_traces(estimate_traced)
     other = _loop(9, loops[0].op.shape[0])
     js.estimate(other, SMALL)
     js.estimate(jax.tree.map(lambda t: t + 1.0, other), SMALL)
-    assert eqx.debug.get_num_traces(_estimate_traced) == before
+    assert eqx.debug.get_num_traces(estimate_traced) == before
 
 
 @pytest.mark.parametrize(
@@ -201,36 +199,36 @@ def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     the programs are kept in memory and nothing is written, and every route gives
     what `estimate` gives. (With the screen's profile, the smaller program: the
     cache does not depend on the settings.)"""
-    from jaxstiction._estimate import programs as _programs
+    from jaxstiction.internal import programs
 
     # (the suite's conftest turns on XLA's persistent compilation cache, as the
     # command line does, so the loaded and the rebuilt program are not compiled again)
-    monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict())
-    _programs.use_program_cache(tmp_path)
+    monkeypatch.setattr(programs, "_loaded", collections.OrderedDict())
+    programs.use_program_cache(tmp_path)
     try:
-        first = _programs.estimate_cached(loops[0], NO_SPLINE)
+        first = programs.estimate_cached(loops[0], NO_SPLINE)
         (path,) = tmp_path.glob("estimate-*.jaxexport")
         exports = []
-        real_export = _programs._export
-        monkeypatch.setattr(_programs, "_export", lambda *a: exports.append(1) or real_export(*a))
-        monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict())
-        loaded = _programs.estimate_cached(loops[0], NO_SPLINE)
+        real_export = programs._export
+        monkeypatch.setattr(programs, "_export", lambda *a: exports.append(1) or real_export(*a))
+        monkeypatch.setattr(programs, "_loaded", collections.OrderedDict())
+        loaded = programs.estimate_cached(loops[0], NO_SPLINE)
         assert exports == []
         path.write_bytes(b"not a program")
-        monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict())
-        rebuilt = _programs.estimate_cached(loops[0], NO_SPLINE)
+        monkeypatch.setattr(programs, "_loaded", collections.OrderedDict())
+        rebuilt = programs.estimate_cached(loops[0], NO_SPLINE)
         assert exports == [1]
     finally:
-        _programs.use_program_cache(None)
+        programs.use_program_cache(None)
     # without the cache (the API's `fit`): the same programs, kept in memory only,
     # and only for the most recently used shapes (here one: a stale entry goes)
-    monkeypatch.setattr(_programs, "_loaded", collections.OrderedDict(stale=None))
-    monkeypatch.setattr(_programs, "_KEEP", 1)
+    monkeypatch.setattr(programs, "_loaded", collections.OrderedDict(stale=None))
+    monkeypatch.setattr(programs, "_KEEP", 1)
     files = sorted(tmp_path.iterdir())
-    in_memory = _programs.estimate_cached(loops[0], NO_SPLINE)
+    in_memory = programs.estimate_cached(loops[0], NO_SPLINE)
     assert exports == [1, 1] and sorted(tmp_path.iterdir()) == files
-    assert list(_programs._loaded) == [_programs._key(loops[0], NO_SPLINE)]
-    reference = _programs.simulations_of(no_spline, loops[0].op, loops[0].pv, loops[0].mask, NO_SPLINE.score)
+    assert list(programs._loaded) == [programs._key(loops[0], NO_SPLINE)]
+    reference = programs.simulations_of(no_spline, loops[0].op, loops[0].pv, loops[0].mask, NO_SPLINE.score)
     for got, sims in (first, loaded, rebuilt, in_memory):
         for sim, ref in zip(sims, reference):
             np.testing.assert_allclose(sim, ref, rtol=1e-9, atol=1e-9)

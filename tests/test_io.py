@@ -1,4 +1,4 @@
-"""Tests for loop data input (`_read`, `_read_mat`, `_checks`) and the `Loop` record
+"""Tests for loop data input (`_io/`, `_checks`) and the `Loop` record
 (`_loop`); the nominal-model file is tested in `test_nominal.py`."""
 
 import warnings
@@ -9,10 +9,18 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._checks import check_loop, LoopDataError
-from jaxstiction._io.read import find_loop_files, loop_name, read_loop
-from jaxstiction._io.read_mat import list_mat_loops
-from jaxstiction._loop import Loop, make_loop, stack, unstack
+from jaxstiction import (
+    check_loop,
+    find_loop_files,
+    list_mat_loops,
+    Loop,
+    loop_name,
+    LoopDataError,
+    make_loop,
+    read_loop,
+    stack,
+    unstack,
+)
 
 
 try:

@@ -1,4 +1,4 @@
-"""Tests for the nominal-model file (`_nominal`): JSON ⇄ `LoopModel`."""
+"""Tests for the nominal-model file (`_io/nominal.py`): JSON ⇄ `LoopModel`."""
 
 import json
 
@@ -6,9 +6,21 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._blocks import ActuatorLag, Choudhury, Deadband, DeadTime, He, Kano, Sinusoid
-from jaxstiction._io.nominal import nominal_to_dict, nominal_ts, read_nominal
-from jaxstiction._models import LinearProcess, LoopModel, SplineValve
+from jaxstiction import (
+    ActuatorLag,
+    Choudhury,
+    Deadband,
+    DeadTime,
+    He,
+    Kano,
+    LinearProcess,
+    LoopModel,
+    nominal_to_dict,
+    nominal_ts,
+    read_nominal,
+    Sinusoid,
+    SplineValve,
+)
 
 
 try:

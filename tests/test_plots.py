@@ -8,7 +8,7 @@ import matplotlib
 import numpy as np
 import pytest
 
-from jaxstiction._plots import write_fit_figures
+from jaxstiction.internal import write_fit_figures
 
 
 NAMES = ["valve_curve.png", "step_response.png", "model_fit.png", "op_pv.png"]
@@ -107,14 +107,14 @@ def _line_labels(ax):
 def test_model_fit_gives_a_runaway_curve_its_own_panel(runaway):
     """A paper's-method curve that leaves the measured PV's range is drawn in a
     panel of its own, never over the data, whose axes keep the measured PV's range."""
-    from jaxstiction._plots import _model_fit
+    from jaxstiction.internal import model_fit_figure
 
     result = fake_fit()
     if runaway:
         k = np.arange(result.pv.shape[0])
         result.pv_sim_paper = result.pv + 1e3 * 1.01 ** k  # diverges
         result.fitness_paper = -3e5
-    fig = _model_fit(result, 400, result.pv - 0.02)
+    fig = model_fit_figure(result, 400, result.pv - 0.02)
     assert len(fig.axes) == (3 if runaway else 2)
     lo, hi = result.pv.min(), result.pv.max()
     for ax in fig.axes[:2]:
@@ -131,9 +131,9 @@ def test_model_fit_gives_a_runaway_curve_its_own_panel(runaway):
 
 def test_model_fit_without_the_paper_method():
     """A fit that did not run the paper's method (its curve NaN) draws none."""
-    from jaxstiction._plots import _model_fit
+    from jaxstiction.internal import model_fit_figure
 
     result = fake_fit(pv_sim_paper=np.full(800, np.nan), fitness_paper=float("nan"))
-    fig = _model_fit(result, 400, None)
+    fig = model_fit_figure(result, 400, None)
     assert len(fig.axes) == 2
     assert not any("paper" in lab for ax in fig.axes for lab in _line_labels(ax))

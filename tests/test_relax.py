@@ -9,12 +9,17 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from jaxstiction._estimate.gram import lag_gram
-from jaxstiction._estimate.relax import ARXHammerstein, relax, relax_init, relax_loss, relax_problem, relax_sweep
-from jaxstiction._scenarios import make_scenario
-from jaxstiction._spline import (
+from jaxstiction import make_scenario
+from jaxstiction.internal import (
+    ARXHammerstein,
     direction,
     hysteresis_regressors,
+    lag_gram,
+    relax,
+    relax_init,
+    relax_loss,
+    relax_problem,
+    relax_sweep,
     scale_input,
     spline_basis,
     uniform_knots,

@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import html
 import json
+import os
 
 import numpy as np
 import pytest
@@ -13,11 +14,8 @@ from helpers import run
 from test_estimate import _loop, SMALL
 
 import jaxstiction as js
-from jaxstiction._criteria import predicted
-from jaxstiction._filters import fitness
-from jaxstiction._screen.batch import bucket_length, chunk_size
-from jaxstiction._screen.screen import rank
-from jaxstiction._verdict.verdict import residual_line
+from jaxstiction import fitness, rank
+from jaxstiction.internal import bucket_length, chunk_size, predicted, residual_line
 
 
 SCREEN = js.ScreenSettings(estimate=SMALL, chunk=3)
@@ -81,7 +79,7 @@ def test_diagnose_causes_takes_the_diagnosis_verdict(monkeypatch, on):
     screen's test, or failing, leaves the screen's cause and says so in the note.
     The same on a Dask cluster, one task per loop (an in-process LocalCluster, so
     the patched `diagnose` is the one its worker calls)."""
-    from jaxstiction._screen import causes  # the module the screen calls `diagnose` from
+    from jaxstiction.internal import causes  # the module the screen calls `diagnose` from
 
     n = 300
     rng = np.random.default_rng(0)
@@ -130,7 +128,7 @@ def test_read_items_names_are_unique_across_folders(tmp_path):
     """Two units exporting the same tag: both loops are read, the second named by its
     folder (every entry, note and diagnosis is keyed by name); `recursive` finds the
     loops in subfolders."""
-    from jaxstiction._screen.screen import read_items
+    from jaxstiction.internal import read_items
 
     rng = np.random.default_rng(1)
     for unit in ("unit1", "unit2"):
@@ -148,7 +146,7 @@ def test_read_items_names_are_unique_across_folders(tmp_path):
 def test_read_items_reads_every_tag_of_a_historian_export(tmp_path):
     """A CSV file with tagged columns of two loops gives two items, named like the
     loops of a `.mat` file (`file:TAG`)."""
-    from jaxstiction._screen.screen import read_items
+    from jaxstiction.internal import read_items
 
     rng = np.random.default_rng(2)
     op, pv = 50 + rng.normal(0, 1, (2, 600)), rng.normal(0, 1, (2, 600))
@@ -166,7 +164,7 @@ def test_read_items_decimates_every_record(tmp_path):
     """`decimate=k`: every record at k times the sampling time (block means); a bad
     factor fails before any file is read."""
     from jaxstiction import screen
-    from jaxstiction._screen.screen import read_items
+    from jaxstiction.internal import read_items
 
     rng = np.random.default_rng(3)
     op, pv = 50 + rng.normal(0, 1, 4002), rng.normal(0, 1, 4002)
@@ -305,7 +303,7 @@ def test_verdict_gains_are_trend_free_simulation_gains(fleet):
     estimated initial state; without one they are the fit's plain score differences."""
     import equinox as eqx
 
-    from jaxstiction._criteria import simulate_scored
+    from jaxstiction import simulate_scored
     _, good, _ = fleet
     loop = good[1]
     f = js.estimate(loop, SMALL)
@@ -416,11 +414,11 @@ def test_threads_give_what_one_call_at_a_time_gives(fleet):
 
 def test_default_threads(monkeypatch):
     """One call in flight per CPU core, at most `MAX_THREADS`, unless asked."""
-    from jaxstiction import _misc
+    from jaxstiction.internal import default_threads, MAX_THREADS, thread_map
 
-    monkeypatch.setattr(_misc.os, "cpu_count", lambda: 64)
-    assert _misc.default_threads() == _misc.MAX_THREADS and _misc.default_threads(3) == 3
-    monkeypatch.setattr(_misc.os, "cpu_count", lambda: None)
-    assert _misc.default_threads() == 1
-    assert _misc.thread_map(lambda x: x * x, range(5), threads=2) == [0, 1, 4, 9, 16]
-    assert _misc.thread_map(abs, []) == []
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    assert default_threads() == MAX_THREADS and default_threads(3) == 3
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert default_threads() == 1
+    assert thread_map(lambda x: x * x, range(5), threads=2) == [0, 1, 4, 9, 16]
+    assert thread_map(abs, []) == []

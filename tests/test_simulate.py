@@ -11,25 +11,32 @@ import jax.random as jr
 import numpy as np
 import pytest
 
-from jaxstiction import fitness
-from jaxstiction._blocks import (
+from jaxstiction import (
     ActuatorLag,
     Choudhury,
     Deadband,
     DeadTime,
     Drift,
     EqualPercentage,
+    Experiment,
+    fitness,
     He,
+    InitialState,
     Kano,
+    LinearProcess,
+    LoopModel,
+    LoopRecord,
+    make_scenario,
+    NoiseModel,
     Quantiser,
     RateLimit,
     run_chain,
+    SCENARIOS,
+    simulate_loop,
     Sinusoid,
     TravelLimits,
 )
-from jaxstiction._models import InitialState, LinearProcess, LoopModel, NoiseModel
-from jaxstiction._scenarios import make_scenario, nominal_model, p_experiment, paper_experiment, SCENARIOS
-from jaxstiction._simulate import Experiment, LoopRecord, simulate_loop
+from jaxstiction.internal import nominal_model, p_experiment, paper_experiment
 
 
 B, A = (0.0, 1.0, 0.5), (1.0, -1.5, 0.7)

@@ -9,13 +9,27 @@ import numpy as np
 import pytest
 
 import jaxstiction as js
-from jaxstiction._estimate.estimate import min_length
-from jaxstiction._estimate.hammerstein import candidate_knots, fit_candidate, fit_spline_candidates
-from jaxstiction._estimate.physical import _arx_design, arx_loss, FIT_BYTES_PER_SAMPLE, fit_physical, valve_from
-from jaxstiction._estimate.reduce import fit_noise_model, LowOrder, reduce_model, welch
-from jaxstiction._filters import freq_response, lfilter
-from jaxstiction._linalg import is_stable
-from jaxstiction._scenarios import nominal_model, p_experiment, paper_experiment
+from jaxstiction import freq_response, lfilter, min_length
+from jaxstiction.internal import (
+    arx_design,
+    arx_loss,
+    candidate_knots,
+    direction,
+    FIT_BYTES_PER_SAMPLE,
+    fit_candidate,
+    fit_noise_model,
+    fit_physical,
+    fit_spline_candidates,
+    is_stable,
+    LowOrder,
+    nominal_model,
+    p_experiment,
+    paper_experiment,
+    reduce_model,
+    scale_input,
+    valve_from,
+    welch,
+)
 
 
 SPL = js.SplineSettings(arx_order=5, knot_counts=(3, 5), max_order=2, max_delay=2, welch_segment=64, relax_steps=150,
@@ -30,7 +44,7 @@ def sticky():
     rec = js.simulate_loop(plant, paper_experiment(), jr.PRNGKey(4), 600)
     op, pv = rec.op, rec.pv
     y = (pv - pv.mean()) / pv.std()
-    u = js.scale_input(op, op.min(), op.max())
+    u = scale_input(op, op.min(), op.max())
     return op, y, u
 
 
@@ -92,7 +106,7 @@ def test_spline_candidates_equal_single_candidate_calls(sticky):
     candidate."""
     op, y, u = sticky
     w = jnp.ones_like(y)
-    H = jnp.stack([js.direction(u), js.direction(u, threshold=0.05)])
+    H = jnp.stack([direction(u), direction(u, threshold=0.05)])
     grid = jax.jit(lambda y, u, H, w: fit_spline_candidates(y, u, H, w, w, SPL))(y, u, H, w)
     knots, masks, counts = candidate_knots(SPL, y.dtype)
     one = jax.jit(lambda y, u, h, k, m, w, c: fit_candidate(y, u, h, k, m, w, w, SPL, c))
@@ -181,7 +195,7 @@ def test_arx_criterion_equals_numpy_lstsq(sticky):
     for base in (w, gaps):
         for s, j in [(0.0, 0.0), (3.0, 1.0), (10.0, 2.0), (20.0, 20.0), (25.0, 5.0)]:
             x, wb, first = valve_from(op, s, j, base, 10, -1, 3)
-            x = js.scale_input(x, lo, hi)
+            x = scale_input(x, lo, hi)
             assert float(jnp.sum(wb)) > 100
             for order in (4, 8):
                 # every delay from one shared Gram matrix, each against its own lstsq
@@ -189,7 +203,7 @@ def test_arx_criterion_equals_numpy_lstsq(sticky):
                 inside = np.asarray(arx_loss(x, y, wb, order, jnp.arange(1, 4), 3))
                 np.testing.assert_allclose(inside, got, rtol=1e-9)
                 for d in (1, 2, 3):
-                    X = np.asarray(_arx_design(x, y, order, d))
+                    X = np.asarray(arx_design(x, y, order, d))
                     m = np.asarray(wb) * (np.arange(N) >= order + 3)
                     th = np.linalg.lstsq(X * m[:, None], np.asarray(y) * m, rcond=None)[0]
                     want = np.sum((m * (np.asarray(y) - X @ th)) ** 2) / m.sum()
@@ -200,7 +214,7 @@ def test_arx_criterion_equals_numpy_lstsq(sticky):
 
     def at(s, j):
         x, wb, first = valve_from(op, s, j, gaps, 10, -1, 3)
-        return arx_loss(js.scale_input(x, lo, hi), y, gaps, 4, jnp.arange(1, 4), 3, first)
+        return arx_loss(scale_input(x, lo, hi), y, gaps, 4, jnp.arange(1, 4), 3, first)
 
     batched = np.asarray(jax.jit(jax.vmap(at))(S, J))
     for i in range(S.shape[0]):
@@ -212,7 +226,7 @@ def test_grad_through_relaxation_reduction_and_polish(sticky):
     central finite differences (the candidate's discrete choices held fixed)."""
     op, y, u = sticky
     w = jnp.ones_like(y)
-    h = js.direction(u)
+    h = direction(u)
     knots, masks, counts = candidate_knots(SPL, y.dtype)
 
     def gain(y):

@@ -336,7 +336,7 @@ def _gain_from_the_block(fam, model, after, level, drift_sig, b, s, proof, ev) -
       B absorbs much of a real block (stiction on P1 seed 12: +10.7 points over the
       nominal, +2.3 over the refitted linear valve), and the nominal stands. A
       characteristic proven by the operating point is exempt: the refit of B and the
-      offset hides exactly that evidence (`_characteristic`).
+      offset hides exactly that evidence (`characteristic`).
     """
     g_lvl = _diff(after["fitness"], _heldout(level, b.op, b.pv, b.n_est)["fitness"])
     _, sp_lvl = proof.null_gain(model, level)

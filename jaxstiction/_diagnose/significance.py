@@ -244,7 +244,7 @@ def _significance(b: _Baseline, g: _Grid, settings: DiagnoseSettings, say) -> _S
     # 1.0, 2.0 and 3.3 half to three quarters as often as the mixture says.
     pvals["drift"] = min(1.0, len(names) * 0.5 * math.erfc(math.sqrt(T_obs["drift"]))) if T_obs["drift"] > 0 else 1.0
     # A valve characteristic is also judged by the operating point the nominal states
-    # (`_characteristic`: the grid's refit of B and the offset absorbs that evidence);
+    # (`characteristic`: the grid's refit of B and the offset absorbs that evidence);
     # the family's p-value is the smaller of its two tests', doubled.
     b_p, a_p = b.nominal.process.polynomials()
     recs = jnp.asarray(np.stack([b.z] + pv_boot))  # the observed error, then the bootstrap's noise records

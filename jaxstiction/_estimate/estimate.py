@@ -340,7 +340,7 @@ def _null_models(p: Prepared, settings: Settings, ph: _PhysicalFamily, none: Kan
     """The null models of the verdict: a linear valve, and a deadband (Kano with J =
     0) at widths around the fitted S, each with a Box-Jenkins linear part of the
     physical model's structure: the stiction verdict compares the Kano valve with
-    both (see `_verdict`)."""
+    both (see [`jaxstiction.verdict`][])."""
     op, y, w_est, count, lo, hi = p.op, p.y, p.w_est, p.count, p.lo, p.hi
     dtype = y.dtype
     N = op.shape[0]

@@ -1,7 +1,7 @@
 r"""The relaxation's Gram route: the Gram matrix of the lagged regressors read off
 lagged cross-correlations (`lag_gram`), and the sweeps' normal equations from its
 blocks in whitened coordinates (`GramProblem`). Built by
-`_relax.relax_problem(..., method="gram")`; see `_relax` for the model and the
+`relax.relax_problem(..., method="gram")`; see `relax` for the model and the
 alternation."""
 
 import equinox as eqx
@@ -75,7 +75,7 @@ def lag_gram(x, n: int, weights, *, window: bool = False):
 
 class GramProblem(eqx.Module):
     r"""The relaxation problem as the blocks of the Gram matrix of $[Z\ y]$ (built by
-    [`jaxstiction.relax_problem`][] with `method="gram"`): $G_{yy} = Y^T Y$ (n, n),
+    [`jaxstiction.internal.relax_problem`][] with `method="gram"`): $G_{yy} = Y^T Y$ (n, n),
     $C = Y^T \Phi$ (n, n, p), $T = \Phi^T \Phi$ (n, p, n, p), $Y^T y$, $\Phi^T y$ and
     $y^T y$, with $Y$ the lagged outputs and $\Phi$ the lagged spline regressors
     (columns indexed by lag, then basis). For a fixed $b$ or a fixed $\beta$ the

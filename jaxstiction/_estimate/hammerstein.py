@@ -206,7 +206,7 @@ def fit_spline_candidates(y, u, directions, weights, mask, settings: SplineSetti
       real samples, 0 on padding.
     - `settings`: [`jaxstiction.SplineSettings`][].
 
-    **Returns:** a [`jaxstiction.CandidateFit`][] with leading axes (rules, knots).
+    **Returns:** a [`jaxstiction.internal.CandidateFit`][] with leading axes (rules, knots).
     """
     knots, masks, counts = candidate_knots(settings, y.dtype)
     R, K = directions.shape[0], knots.shape[0]

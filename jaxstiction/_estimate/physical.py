@@ -189,7 +189,7 @@ def models_at(models, i):
 
 
 class PhysicalFit(eqx.Module):
-    """Result of [`jaxstiction.fit_physical`][] (S, J in % of OP span)."""
+    """Result of [`jaxstiction.internal.fit_physical`][] (S, J in % of OP span)."""
 
     S: Float[Array, ""]
     J: Float[Array, ""]
@@ -354,7 +354,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
         Sw = jnp.clip(s0[kbest] + span * hs * jnp.repeat(rr, settings.final), 0.0, None)
         Jw = jnp.minimum(jnp.clip(j0[kbest] + span * hj * jnp.tile(rr, settings.final), 0.0, None), Sw)
         # 15 Levenberg-Marquardt steps: the losses, not the models, are needed here
-        # (within 7e-5 of a 100-step fit on 1500-sample loops, see `_screen`)
+        # (within 7e-5 of a 100-step fit on 1500-sample loops, see `SCREEN_ESTIMATE`)
         _, vw, _ = chunked_vmap(lambda *a: fine(*a, steps=min(15, settings.oe_steps)),
                                 (Sw, Jw, jnp.full((F,), delay), jnp.full((F,), start)), fits)
         gS, gJ, gv = jnp.concatenate([Sf, Sw]), jnp.concatenate([Jf, Jw]), jnp.concatenate([v, vw])

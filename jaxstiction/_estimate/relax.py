@@ -34,7 +34,7 @@ from .gram import _DROP, GramProblem, lag_gram
 
 class RelaxProblem(eqx.Module):
     """The compressed relaxation problem for one loop (built by
-    [`jaxstiction.relax_problem`][])."""
+    [`jaxstiction.internal.relax_problem`][])."""
 
     R: Float[Array, "k k"]
     r: Float[Array, " k"]
@@ -60,12 +60,12 @@ def relax_problem(y, phi, order: int, weights=None, *, method: str = "qr"):
 
     - `"qr"` (default): $[Z\ y]$ reduced to its triangular factor by a Householder QR
       (backward stable); each sweep then solves its two least-squares problems by QR
-      on that factor. Returns a [`jaxstiction.RelaxProblem`][].
+      on that factor. Returns a [`jaxstiction.internal.RelaxProblem`][].
     - `"gram"`: the Gram matrix of $[Z\ y]$, formed from the lagged cross-correlations
       of $y$ and the spline regressors (`lag_gram`, about $2n+1$ times fewer products
       than $Z^T Z$); each sweep solves its normal equations, two Cholesky
       factorisations of size $n + p$ and $2n$, so no sweep touches the data. Returns a
-      [`jaxstiction.GramProblem`][]. This squares the condition number: on noisy
+      [`jaxstiction.internal.GramProblem`][]. This squares the condition number: on noisy
       records it reaches the same minimum (criterion to 1e-9, valve output to 1e-6;
       `tests/test_relax.py`), but on exact, noise-free data with an ill-conditioned
       spline basis it loses about two digits in $a, b$ (seen in the same tests), so
@@ -102,7 +102,7 @@ def relax_problem(y, phi, order: int, weights=None, *, method: str = "qr"):
 
 class ARXHammerstein(eqx.Module):
     """High-order model: `a` = $[a_1..a_n]$, `b` = $[b_1..b_n]$, `beta` spline
-    coefficients (see [`jaxstiction.hysteresis_regressors`][])."""
+    coefficients (see [`jaxstiction.internal.hysteresis_regressors`][])."""
 
     a: Float[Array, " n"]
     b: Float[Array, " n"]
@@ -163,7 +163,7 @@ def relax_sweep(model: ARXHammerstein, prob, ridge=1e-14) -> ARXHammerstein:
 
 
 class RelaxSolution(eqx.Module):
-    """Result of [`jaxstiction.relax`][]: the model, the criterion (14), the residual
+    """Result of [`jaxstiction.internal.relax`][]: the model, the criterion (14), the residual
     variance estimate `R` ($\\hat\\lambda$), steps taken, and an optimistix result code."""
 
     model: ARXHammerstein

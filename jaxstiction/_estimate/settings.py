@@ -24,7 +24,7 @@ class SplineSettings(eqx.Module):
     - `max_order`: largest reduced order $l$ tried by ASYC (21).
     - `max_delay`: largest input delay (samples) tried in the reduction.
     - `relax_steps`: cap on relaxation sweeps; `compression`: `"qr"` or `"gram"`
-      (faster, for noisy records only; see [`jaxstiction.relax_problem`][]).
+      (faster, for noisy records only; see [`jaxstiction.internal.relax_problem`][]).
     - `welch_segment`: segment length of the spectral estimates in (18).
     - `polish`: run the output-error polish after the paper's steps.
     - `range_factor`: a candidate whose simulation leaves the estimation PV range by

@@ -41,8 +41,6 @@ from .._models import LinearProcess, LoopModel
 from .columns import _short
 
 
-__all__ = ["nominal_to_dict", "nominal_ts", "read_nominal"]
-
 _VALVE_MODELS = ("linear", "kano", "choudhury", "he", "deadband")
 
 # Stochastic blocks (those with a `key` field): the key is written as a list of

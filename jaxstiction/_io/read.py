@@ -41,8 +41,6 @@ from .columns import _COLUMN, _match_columns, _norm, _short, _tagged_loops
 from .read_mat import _read_mat, list_mat_loops
 
 
-__all__ = ["find_loop_files", "list_loops", "loop_name", "read_loop"]
-
 _CSV_SUFFIXES = (".csv", ".tsv", ".txt")
 _MAT_SUFFIXES = (".mat",)
 
@@ -260,8 +258,6 @@ def _read_csv(path: Path, where: str, name: str | None = None) -> dict[str, np.n
     if "t" in index:
         out["t"] = _parse_times(times, header[index["t"]].strip(), where, decimal_comma)
     return out
-
-
 
 
 # ------------------------------------------------------------------- DataFrame/dict

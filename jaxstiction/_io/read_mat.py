@@ -24,9 +24,6 @@ from .._checks import LoopDataError
 from .columns import _found, _match_columns, _norm, _short
 
 
-__all__ = ["list_mat_loops"]
-
-
 def _is_struct(obj: object) -> bool:
     return hasattr(obj, "_fieldnames")
 

@@ -1,4 +1,4 @@
-r"""Fleet screening: many loops through one batched, jitted estimate and verdict.
+r"""Fleet screening in batches: many loops through one batched, jitted estimate and verdict.
 
 Loops are bucketed by length (a ladder of lengths ~√2 apart), padded and masked
 inside a bucket, and fitted in chunks of a fixed size by one compiled call of
