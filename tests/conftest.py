@@ -31,14 +31,14 @@ jax.config.update("jax_enable_x64", True)
 
 ISDB = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "isdb"
 
-# The test files, heaviest first (seconds on a cold compilation cache with the ISDB
-# folder present, 2026-11-24: 227, 182, 110, 100, 88, 60, 56, 53; the rest take under
-# 20). With `--no-loadscope-reorder` (pyproject's addopts) xdist hands whole files to
-# the two workers in collection order as each frees up, so this is a longest-first
-# schedule. Measured cold with the ISDB tests: 8 min 12 s instead of 8 min 56 s of
-# wall time for 15 minutes of work (one run each).
-_HEAVIEST_FIRST = ("test_estimate.py", "test_diagnose.py", "test_cli.py", "test_fit.py", "test_stages.py",
-                   "test_screen.py", "test_relax.py", "test_simulate.py")
+# The test files, heaviest first (seconds of the default run, `-m "not slow"`, on a
+# cold compilation cache with the ISDB folder present: 234, 149, 123, 115, 93, 70;
+# the rest take under 40). With `--no-loadscope-reorder` (pyproject's addopts)
+# xdist hands whole files to the two workers in collection order as each frees up,
+# so this is a longest-first schedule (896 s of tests in 7 min 58 s of wall time,
+# one run).
+_HEAVIEST_FIRST = ("test_estimate.py", "test_stages.py", "test_screen.py", "test_diagnose.py", "test_simulate.py",
+                   "test_relax.py", "test_blocks.py", "test_cli.py", "test_filters.py", "test_fit.py")
 
 
 def pytest_collection_modifyitems(items):

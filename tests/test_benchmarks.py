@@ -35,6 +35,7 @@ def test_script_help(script, monkeypatch, capsys):
     assert out.startswith("usage:") and script in out
 
 
+@pytest.mark.slow
 def test_calibrate_verdict_screens_a_loop(monkeypatch, capsys):
     # one healthy loop through the screen's settings as the script builds them
     _run(monkeypatch, "calibrate_verdict.py", "--seeds", "0", "--kinds", "none")

@@ -128,6 +128,7 @@ def test_long_record_note(tmp_path):
     assert "long record" not in res.stderr and res.returncode == 2
 
 
+@pytest.mark.slow
 def test_fit_json_contract_on_chem23(isdb, tmp_path):
     """CHEM23 by the paper's protocol (validated on its estimation data; the paper
     reports 75.67 %, >= 77 % is asked), through the command line's JSON contract."""
@@ -148,6 +149,7 @@ def test_fit_json_contract_on_chem23(isdb, tmp_path):
         assert (tmp_path / name).stat().st_size > 0, name
 
 
+@pytest.mark.slow
 def test_demo_json_contract_and_no_run_away_choice(tmp_path):
     """`demo` end to end (the README's first command) on a seed where FOE preferred a
     spline model whose simulation ran away on the validation record (-67 % against the

@@ -487,6 +487,7 @@ def _diagnosed_without_nominal(case):
     return sc, js.diagnose(short, None, js.DiagnoseSettings(bootstrap=19, joint=joint, joint_bootstrap=5))
 
 
+@pytest.mark.slow
 def test_no_nominal_refits_stiction_jointly():
     """Without a nominal model the stiction finding comes from the joint refit (Kano
     valve with the linear part's poles free), with its own bootstrap: on a sticky
@@ -502,6 +503,7 @@ def test_no_nominal_refits_stiction_jointly():
     json.dumps(d.to_json())
 
 
+@pytest.mark.slow
 def test_no_nominal_refits_deadband_jointly():
     """Without a nominal model, a valve band whose slip is not significant is judged
     as the joint fit's deadband (not the grid's, whose candidate holds the

@@ -192,6 +192,7 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
         js.fit(np.asarray(lp.op)[:100], np.asarray(lp.pv)[:100], settings=SMALL)
 
 
+@pytest.mark.slow
 def test_exported_program_cache(loops, no_spline, tmp_path, monkeypatch):
     """`fit`'s on-disk cache of exported `estimate` programs: the first call exports
     and saves, a new process (here: the in-memory table cleared) loads the file

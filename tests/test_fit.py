@@ -50,6 +50,7 @@ def test_too_short_after_holding_out_validation():
 # through the command line, in test_cli.py: one compilation of that program, not two.
 
 
+@pytest.mark.slow
 def test_chem23_held_out_last_third(isdb):
     loop = js.read_loop(isdb / "CHEM23.csv")
     r = js.fit(loop.op, loop.pv, ts=loop.ts, validate=1 / 3, name="CHEM23")
@@ -68,6 +69,7 @@ def test_chem23_held_out_last_third(isdb):
         np.testing.assert_allclose(r.predict(loop.op[part], loop.pv[part]), r.pv_sim[part], rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_chem11_chosen_model_stays_in_range(isdb):
     """CHEM11's spline model had a noise model with C and D outside the unit circle
     (a near-white residual), so the initial-state search, whitened by D/C, diverged

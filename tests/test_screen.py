@@ -401,6 +401,7 @@ def test_dask_local_cluster_matches_single_process(fleet, screened):
     assert rep.to_json() == screened.to_json()
 
 
+@pytest.mark.slow
 def test_threads_give_what_one_call_at_a_time_gives(fleet):
     """Batched calls run `threads` at a time (one loop per call here: a bucket's first
     call alone, the other two at once) give exactly the entries, in the same order,
