@@ -23,6 +23,8 @@ class Loop(eqx.Module):
       padding always sits at the end of the record.
     - `ts`: sampling time in seconds (a scalar array, so loops with different
       sampling times batch together).
+    - `sp`: the setpoint, in PV's units, or `None` when none was recorded. (In a
+      batch whose loops differ, a loop without one carries NaN: see `setpoint`.)
 
     All fields are arrays, so a `Loop` passes through `jit` and `vmap`; a batch of
     loops is a `Loop` whose arrays have a leading batch axis.
@@ -32,6 +34,12 @@ class Loop(eqx.Module):
     pv: Float[Array, " time"]
     mask: Float[Array, " time"]
     ts: Float[Array, ""]
+    sp: Float[Array, " time"] | None = None
+
+    @property
+    def setpoint(self) -> Float[Array, " time"]:
+        """The setpoint, NaN on every sample when none was recorded."""
+        return jnp.full_like(self.op, jnp.nan) if self.sp is None else self.sp
 
     @property
     def length(self) -> int:
@@ -39,8 +47,9 @@ class Loop(eqx.Module):
         return int(np.asarray(self.mask).sum())
 
 
-def make_loop(op, pv, ts=1.0, dtype=None) -> Loop:
-    """A [`jaxstiction.Loop`][] from OP and PV arrays (no padding; `mask` all ones).
+def make_loop(op, pv, ts=1.0, dtype=None, *, sp=None) -> Loop:
+    """A [`jaxstiction.Loop`][] from OP and PV arrays (no padding; `mask` all ones),
+    with the setpoint `sp` when one was recorded.
 
     Values are not checked here; [`jaxstiction.check_loop`][] does that.
     """
@@ -49,7 +58,11 @@ def make_loop(op, pv, ts=1.0, dtype=None) -> Loop:
     pv = jnp.asarray(np.asarray(pv, float), dtype)
     if op.ndim != 1 or op.shape != pv.shape:
         raise ValueError(f"`op` and `pv` must be 1-D arrays of one length, got shapes {op.shape} and {pv.shape}")
-    return Loop(op=op, pv=pv, mask=jnp.ones(op.shape, dtype), ts=jnp.asarray(float(ts), dtype))
+    if sp is not None:
+        sp = jnp.asarray(np.asarray(sp, float), dtype)
+        if sp.shape != op.shape:
+            raise ValueError(f"`sp` must have the shape of `op`, {op.shape}, got {sp.shape}")
+    return Loop(op=op, pv=pv, mask=jnp.ones(op.shape, dtype), ts=jnp.asarray(float(ts), dtype), sp=sp)
 
 
 def pad(loop: Loop, length: int) -> Loop:
@@ -67,7 +80,8 @@ def pad(loop: Loop, length: int) -> Loop:
         fill = x[-1] if value is None else value
         return jnp.concatenate([x, jnp.full((extra,), fill, x.dtype)])
 
-    return Loop(op=ext(loop.op), pv=ext(loop.pv), mask=ext(loop.mask, 0.0), ts=loop.ts)
+    return Loop(op=ext(loop.op), pv=ext(loop.pv), mask=ext(loop.mask, 0.0), ts=loop.ts,
+                sp=None if loop.sp is None else ext(loop.sp))
 
 
 def stack(loops: Sequence[Loop], length: int | None = None) -> Loop:
@@ -82,11 +96,13 @@ def stack(loops: Sequence[Loop], length: int | None = None) -> Loop:
         raise ValueError("`loops` is empty: nothing to stack")
     n = max(lp.op.shape[-1] for lp in loops) if length is None else int(length)
     padded = [pad(lp, n) for lp in loops]
+    any_sp = any(lp.sp is not None for lp in padded)  # then every member carries one (NaN: none recorded)
     return Loop(
         op=jnp.stack([lp.op for lp in padded]),
         pv=jnp.stack([lp.pv for lp in padded]),
         mask=jnp.stack([lp.mask for lp in padded]),
         ts=jnp.stack([jnp.asarray(lp.ts) for lp in padded]),
+        sp=jnp.stack([lp.setpoint for lp in padded]) if any_sp else None,
     )
 
 
@@ -121,7 +137,8 @@ def decimate(loop: Loop, factor: int) -> Loop:
         return x[..., :n].reshape(*x.shape[:-1], n // factor, factor)
 
     return Loop(op=blocks(loop.op).mean(-1), pv=blocks(loop.pv).mean(-1),
-                mask=blocks(loop.mask).min(-1), ts=loop.ts * factor)
+                mask=blocks(loop.mask).min(-1), ts=loop.ts * factor,
+                sp=None if loop.sp is None else blocks(loop.sp).mean(-1))
 
 
 def unstack(batch: Loop) -> list[Loop]:
@@ -129,5 +146,6 @@ def unstack(batch: Loop) -> list[Loop]:
     out = []
     for i in range(batch.op.shape[0]):
         n = int(np.asarray(batch.mask[i]).sum())
-        out.append(Loop(op=batch.op[i, :n], pv=batch.pv[i, :n], mask=batch.mask[i, :n], ts=batch.ts[i]))
+        sp = None if batch.sp is None else batch.sp[i, :n]
+        out.append(Loop(op=batch.op[i, :n], pv=batch.pv[i, :n], mask=batch.mask[i, :n], ts=batch.ts[i], sp=sp))
     return out

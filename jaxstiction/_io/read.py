@@ -91,7 +91,7 @@ def _finish(
 ) -> Loop:
     """Shared tail of all readers: checks, sampling-time precedence, the `Loop`.
 
-    SP and t are checked (length, NaN/inf) but not kept; t only gives the sampling
+    SP and t are checked (length, NaN/inf); SP is kept, t only gives the sampling
     time.
     """
     op, pv = check_loop(
@@ -128,7 +128,7 @@ def _finish(
             ts_val = _positive_ts(file_ts, "`Ts`", where)
         if ts_val is None:
             ts_val = 1.0
-    return make_loop(op, pv, ts_val)
+    return make_loop(op, pv, ts_val, sp=extra["sp"])
 
 
 # ----------------------------------------------------------------------------- CSV
@@ -353,9 +353,9 @@ def read_loop(
       messages (default `"loop"`), and the tag when its columns are tagged. (To
       label a loop read from a path, use [`jaxstiction.loop_name`][].)
 
-    **Returns:** a [`jaxstiction.Loop`][] with `op`, `pv`, `mask` (all ones) and
-    `ts`. `SP` and `t` are checked (length, NaN/inf) but not returned; `t` only
-    gives the sampling time.
+    **Returns:** a [`jaxstiction.Loop`][] with `op`, `pv`, `mask` (all ones), `ts`
+    and `sp` (the `SP` column, `None` without one). `SP` and `t` are checked
+    (length, NaN/inf); `t` only gives the sampling time.
 
     **Raises:** [`jaxstiction.LoopDataError`][] (a `ValueError`) with a one-line
     message naming the file and the problem: file not found, unreadable or not CSV,
