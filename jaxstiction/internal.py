@@ -90,6 +90,7 @@ from ._estimate.relax import (
 )
 from ._estimate.result import delay_note as delay_note, held_out_note as held_out_note
 from ._estimate.settings import FULL_SEARCH_ESTIMATE as FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE as SCREEN_ESTIMATE
+from ._fleet import FleetLoop as FleetLoop, KINDS as FLEET_KINDS, realistic_fleet as realistic_fleet
 from ._filters import lagged as lagged, steady_state as steady_state
 from ._linalg import is_stable as is_stable, lstsq as lstsq
 from ._misc import (
@@ -125,4 +126,28 @@ from ._spline import (
     uniform_knots as uniform_knots,
     valve_curves as valve_curves,
 )
-from ._verdict.verdict import residual_line as residual_line, usable as usable
+from ._verdict.calibration import CALIBRATION as CALIBRATION
+from ._verdict.crossval import crossval_gain as crossval_gain, kstep_prediction as kstep_prediction
+from ._verdict.gate import gate_measures as gate_measures, GateMeasures as GateMeasures, GATES as GATES, HARD as HARD
+from ._verdict.indicators import (
+    autocorrelation as autocorrelation,
+    bicoherence as bicoherence,
+    control_error as control_error,
+    dominant_period as dominant_period,
+    horch_phase as horch_phase,
+    Indicators as Indicators,
+    indicators as indicators,
+    lowpass as lowpass,
+    oscillation as oscillation,
+    shape_index as shape_index,
+    stuck_share as stuck_share,
+)
+from ._verdict.probability import Calibration as Calibration, fit_calibration as fit_calibration
+from ._verdict.verdict import (
+    features as features,
+    FEATURES as FEATURES,
+    gate as gate,
+    residual_line as residual_line,
+    usable as usable,
+    VERDICTS as VERDICTS,
+)

@@ -35,6 +35,21 @@ class VerdictSettings(eqx.Module):
       this degree, fitted on each scored part, is removed from the PV and from the
       simulation error ([`jaxstiction.fitness_trend_free`][]; `None`: the plain
       fitness (34) that `estimate` scores). See the module notes.
+
+    The thresholds above make the model-based test (`Verdict.model_wins`), one piece
+    of evidence among several. The verdict itself:
+
+    - `threshold`: the stiction probability at or above which a loop is called
+      sticky.
+    - the data-quality gate (see the verdict's module notes): `max_saturated`, the
+      share of samples with OP at an extreme; `max_compressed`, the share of one
+      signal's moves on which the other repeats its previous value, with no flat run
+      longer than `max_flat_run` of the record (a longer one is a stuck valve's or a
+      dead sensor's, not a historian's); `max_setpoint_share`,
+      the setpoint's variance over PV's; `min_periods`, the periods of the dominant
+      oscillation the record must hold.
+    - `crossval_folds`, `crossval_horizon`: the blocked cross-validation's blocks
+      and prediction horizon (samples).
     """
 
     min_gain: float = eqx.field(static=True, default=1.0)
@@ -49,8 +64,20 @@ class VerdictSettings(eqx.Module):
     max_fraction: float = eqx.field(static=True, default=0.25)
     same_line: float = eqx.field(static=True, default=0.1)
     trend_degree: int | None = eqx.field(static=True, default=2)
+    threshold: float = eqx.field(static=True, default=0.5)
+    max_saturated: float = eqx.field(static=True, default=0.3)
+    max_compressed: float = eqx.field(static=True, default=0.5)
+    max_flat_run: float = eqx.field(static=True, default=0.25)
+    max_setpoint_share: float = eqx.field(static=True, default=0.5)
+    min_periods: float = eqx.field(static=True, default=3.0)
+    crossval_folds: int = eqx.field(static=True, default=4)
+    crossval_horizon: int = eqx.field(static=True, default=5)
 
     def __check_init__(self):
-        check_counts(self, positive=("prediction_horizon", "prediction_init_count"))
+        check_counts(self, positive=("prediction_horizon", "prediction_init_count", "crossval_horizon"))
+        if not (isinstance(self.crossval_folds, int) and self.crossval_folds >= 2):
+            raise ValueError(f"`crossval_folds` must be a whole number of at least 2, got {self.crossval_folds!r}")
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError(f"`threshold` must be a probability in (0, 1), got {self.threshold!r}")
         if self.trend_degree is not None:
             check_counts(self, nonnegative=("trend_degree",))

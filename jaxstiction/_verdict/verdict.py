@@ -1,78 +1,59 @@
-r"""The stiction verdict of a fitted loop, and its cause when it is not stiction.
+r"""The stiction verdict of a fitted loop: `stiction`, `no_stiction` or
+`inconclusive`, a calibrated probability, and the cause of a loop that is not sticky.
 
-A loop is called sticky when Kano's stiction model *beats a linear valve* on data it
-was not fitted on: [`jaxstiction.estimate`][] fits both with a Box–Jenkins linear
-part of the same structure (orders, delays tried), each refitted with its valve, so
-the two differ by the valve and by what the linear part makes of it.
-The apparent band alone is no test: every fit has one.
+A plant record is not a simulation. It is short, it changes regime (setpoint moves,
+load changes), its process may integrate, and its historian may have compressed it.
+So no single number decides; the verdict weighs several kinds of evidence, each
+robust to a different failure, and says `inconclusive` where the data cannot show a
+valve at all.
 
-The Kano valve must win on the held-out and on the estimation samples, either
+**Evidence.**
 
-- in simulation (each part from an initial state estimated on its opening
-  samples, a slow trend removed: see below), or
-- in `prediction_horizon`-step-ahead prediction, for a band of at least
-  `prediction_band` of the OP range. A sticky valve in a loop whose setpoint rarely
-  moves holds the loop in a limit cycle; a simulation of it drifts out of phase
-  with the recorded cycle over hundreds of samples and can lose to a linear valve's
-  simulation (which predicts little more than the mean), while every slip still
-  shows a few samples later. On the calibration loops with such setpoints the
-  simulation test missed 10 of 24 sticky valves (seeds 0–23) and the prediction
-  test found 9 of those 10. A tightly tuned linear loop also gains a few points of
-  short-horizon prediction from a small Kano band (its fitted band was at most 8 %
-  of the OP range there, those sticky valves' 17–35 %), hence the band bound
-  (`benchmarks/calibrate_verdict.py`).
+1. *Model-based*: [`jaxstiction.estimate`][] fits a Kano valve and two nulls (a
+   linear valve, a deadband), each with a Box–Jenkins linear part of the same
+   structure. Their held-out gains in simulation (trend-free: a quadratic fitted on
+   each scored part is removed, so a slow drift no model can simulate neither
+   swamps nor tilts the comparison) and in `prediction_horizon`-step prediction,
+   on the held-out last third and on the estimation samples, and the fitted band
+   S as a fraction of the OP range. `model_wins` is the old rule on these alone
+   (the Kano valve beats the linear one by `min_gain` points on both parts, in
+   simulation or, for a band of `prediction_band`, in prediction).
+2. *Blocked cross-validation* (`crossval`): the record cut into
+   `crossval_folds` blocks; each block predicted `crossval_horizon` samples ahead
+   by cheap ARX models fitted on the other blocks, driven by a Kano valve and by a
+   linear valve. Not one split, so one regime change cannot decide it; k-step
+   prediction, so a slow wander cannot.
+3. *Data-driven indicators* (`indicators`), the tests practitioners trust: the
+   dominant oscillation's period, regularity (Thornhill et al. 2003) and share of
+   the error's power; the phase between OP and the error at that period (Horch
+   1999: odd cross-correlation for a sticky valve); the triangular-against-
+   sinusoidal shape of OP's and PV's half-cycles (He et al. 2007); the
+   bicoherence's non-Gaussianity (Choudhury et al. 2004); the share of OP's travel
+   made while PV stands still (the PV–OP plot's flat tops).
 
-Both simulation gains are measured *trend-free*: a quadratic trend, fitted on each
-scored part, is removed from the PV and from each model's simulation error before
-the fitness (34) is taken ([`jaxstiction.fitness_trend_free`][],
-`VerdictSettings.trend_degree`). A slow drift at the output (a random walk, a load
-that wanders), which real loops often carry and no model from OP to PV can
-simulate, otherwise sits in both errors: it swamps the valve's difference, and
-through the two fits' different offsets and slow poles it tilts the comparison
-either way. The valve's cycles and the loop's steps, faster than a few hundred
-samples, are left. Formed on the drawn loops of seeds 0–23 (polynomial degrees 0–11
-compared; degree 2 found 48 of 72 valve bands against the plain fitness's 43, false
-alarms 5 either way) and checked unchanged on seeds 24–47 (44 against 40, false
-alarms 4 against 3) and 48–71 (49 against 44, 3 against 5); on the paper's process
-(seeds 0–47) the same 128 of 144 bands and no false alarm
-(`benchmarks/calibrate_verdict.py`).
+The error is `SP − PV` when the record carries a setpoint, else `−PV`.
 
-A sticky valve is one with a band S (deadband + stickband) and a slip jump
-J ≥ 0; J = 0 is a valve that sticks without slipping, and the Kano model cannot tell
-its stickband from a deadband (backlash). The slip is reported apart
-(`slip_identified`: the Kano valve beats a deadband of about its width), not used to
-clear the valve: on 12 simulated valves with a small slip (J/S 0.02–0.25) the
-slip was identified on 5, although S and J were fitted well, and the J fitted to
-pure deadbands spans the same J/S (0.02–0.27), so a rule "no visible slip, so
-backlash" would miss sticky valves without naming backlash reliably
-(`benchmarks/calibrate_verdict.py`).
+**Probability.** The evidence becomes a feature vector (`features`, `FEATURES`)
+and a logistic model, calibrated on a simulated realistic fleet and on labelled
+real records (`jaxstiction.internal.CALIBRATION`, from
+`benchmarks/calibrate_probability.py`), turns it into `probability`.
 
-A Kano valve that wins is still not called sticky when its own residual keeps the
-oscillation of the linear valve's: a narrow line holding more than `oscillation` of
-the residual power in both, at the same period (within `same_line`). A sticky
-valve's limit cycle is what the Kano model explains; a line it leaves in place is a
-disturbance from elsewhere, which a Kano valve with a band only mimics in part. The
-loop's cause is then `external_oscillation`. Formed on the drawn loops of seeds
-0-23 (one false alarm of six cleared, no valve band lost) and then checked, unchanged,
-on seeds 24-47 (two of five false alarms cleared, none lost), 48-71 (five of ten
-cleared, one band of 45 lost) and on the paper's process at seeds 0-47 (its one
-false alarm cleared, none of 128 bands lost); it changes no ISDB verdict. A sticky
-valve beside a strong external oscillation is the price: it is named the
-oscillation. (The P10 scenario, Kano S 4, J 1 beside a sinusoid of amplitude 4 and
-period 30, keeps its screen verdicts at seeds 0-5: its linear residual holds the
-line at 6-10 % of its power.)
+**Gate** (`gate`): a record whose PV is frozen, whose OP sits at a stop, or which
+the historian compressed into flat runs is `inconclusive` whatever the evidence
+says. A record whose setpoint moves carry most of PV's variance, or with fewer
+than `min_periods` periods of any oscillation, is `inconclusive` unless the
+probability calls it sticky.
 
-When the valve is not sticky, the cause of the loop's behaviour is named from what
-the linear fit leaves:
+**Verdict.** `stiction` when the gate lets the loop through and the probability is
+at least `threshold`; `no_stiction` when it is below and nothing gates the loop;
+`inconclusive` otherwise. `stiction_detected` is `verdict == stiction`.
 
-- `external_oscillation`: the linear valve explains OP → PV, yet its residual holds
-  a narrow spectral line: a periodic disturbance entering at the output (a loop
-  oscillating from tight tuning is explained by the linear model and is `none`);
-- `none`: nothing of the above.
-
-The thresholds ([`jaxstiction.VerdictSettings`][]) were calibrated on simulated loops
-with and without stiction and with its confounders (external oscillation, deadband,
-tight tuning, noise alone): see `benchmarks/calibrate_verdict.py`.
+**Slip and cause.** A sticky valve is one with a band S (deadband + stickband) and
+a slip jump J ≥ 0; `slip_identified` says the Kano valve also beats a deadband of
+its width by `min_slip_gain` points (J = 0 cannot tell stickband from backlash). A
+loop that is not sticky gets a cause: `external_oscillation` when the linear
+valve's residual holds a narrow spectral line with more than `oscillation` of its
+power (a periodic disturbance from elsewhere), else `none`.
 
 Pure JAX: it vmaps with `estimate` over a batch of loops.
 """
@@ -89,18 +70,38 @@ from .._estimate.estimate import estimation_parts
 from .._estimate.result import RESULTS
 from .._filters import fitness, fitness_trend_free
 from .._loop import Loop
+from .calibration import CALIBRATION
+from .crossval import crossval_gain
+from .gate import GATES, gate_measures, GateMeasures, HARD
+from .indicators import Indicators, indicators
+from .probability import Calibration
 from .settings import VerdictSettings
 
 
 CAUSES = ("none", "stiction", "external_oscillation")
+VERDICTS = ("no_stiction", "stiction", "inconclusive")  # `Verdict.verdict` indexes this
+
+# The features of the probability, in order; `features` computes them.
+FEATURES = ("horch", "log_regularity", "share", "shape_op", "shape_pv", "stuck_pv", "ngi", "crossval",
+            "evidence", "evidence_prediction", "evidence_estimation", "band")
 
 
 class Verdict(eqx.Module):
     """Result of [`jaxstiction.verdict`][] (arrays; a leading axis when batched).
 
-    - `stiction_detected`; `cause`: an index into `CAUSES` (`none`, `stiction`,
-      `external_oscillation`); `slip_identified`: the sticky valve's slip jump is
-      seen in the data (else a deadband of its width fits as well).
+    - `verdict`: an index into `VERDICTS` (`no_stiction`, `stiction`,
+      `inconclusive`); `stiction_detected`: `verdict == stiction`;
+      `probability`: the calibrated stiction probability; `gate`: an index into
+      `GATES` (`ok` or why the data cannot show stiction); `gate_measures`: what
+      the gate measured.
+    - `cause`: an index into `CAUSES` (`none`, `stiction`, `external_oscillation`);
+      `slip_identified`: the sticky valve's slip jump is seen in the data (else a
+      deadband of its width fits as well).
+    - `indicators`: the data-driven indicators (an `Indicators`);
+      `crossval`: per fold, the share (%) of the linear valve's held-out k-step
+      prediction error that a Kano valve removes.
+    - `features`: the probability's inputs (`FEATURES`, in order).
+    - `model_wins`: the model-based test alone (see the module notes).
     - `evidence`: held-out simulation fitness gain of the Kano valve over the linear
       valve (points; trend removed, see `VerdictSettings.trend_degree`);
       `evidence_estimation`: the same on the estimation samples.
@@ -112,12 +113,20 @@ class Verdict(eqx.Module):
     - `oscillation`: share of the linear model's residual power in its strongest
       narrow band, at period `period` (samples); `oscillation_kano`, `period_kano`:
       the same for the Kano model's residual; `line_persists`: both hold a line above
-      the threshold at the same period, so a winning Kano valve is not called sticky.
+      the threshold at the same period.
     """
 
+    verdict: Int[Array, ""]
     stiction_detected: Bool[Array, ""]
+    probability: Float[Array, ""]
+    gate: Int[Array, ""]
+    gate_measures: GateMeasures
     cause: Int[Array, ""]
     slip_identified: Bool[Array, ""]
+    indicators: Indicators
+    crossval: Float[Array, " folds"]
+    features: Float[Array, " features"]
+    model_wins: Bool[Array, ""]
     evidence: Float[Array, ""]
     evidence_estimation: Float[Array, ""]
     evidence_prediction: Float[Array, ""]
@@ -130,6 +139,43 @@ class Verdict(eqx.Module):
     oscillation_kano: Float[Array, ""]
     period_kano: Float[Array, ""]
     line_persists: Bool[Array, ""]
+
+
+def features(ind: Indicators, crossval, evidence, evidence_prediction, evidence_estimation, band):
+    """The probability's feature vector (`FEATURES`, in order) from the evidence of
+    one loop: each indicator and gain on a bounded scale (a missing one at its
+    uninformative value), so that no single wild number decides."""
+
+    def clip(x, lo, hi, missing=0.0):
+        return jnp.clip(jnp.where(jnp.isfinite(x), x, missing), lo, hi)
+
+    return jnp.stack([
+        clip(ind.horch, 0.0, 1.0, 0.5),
+        jnp.log(clip(ind.regularity, 0.05, 100.0, 0.05)),
+        clip(ind.share, 0.0, 1.0),
+        clip(ind.shape_op, 0.0, 1.0, 0.5),
+        clip(ind.shape_pv, 0.0, 1.0, 0.5),
+        clip(ind.stuck_pv, 0.0, 1.0),
+        clip(ind.ngi, -0.2, 0.5),
+        clip(jnp.median(crossval), -30.0, 30.0) / 10.0,
+        clip(evidence, -20.0, 20.0) / 10.0,
+        clip(evidence_prediction, -20.0, 20.0) / 10.0,
+        clip(evidence_estimation, -20.0, 20.0) / 10.0,
+        clip(band, 0.0, 1.5),
+    ])
+
+
+def gate(g: GateMeasures, ind: Indicators, settings: VerdictSettings) -> Int[Array, ""]:
+    """The gate's code (an index into `GATES`) from its measures and the
+    indicators: the first check the loop fails, in the order of `GATES`."""
+    few = ~jnp.isfinite(ind.period) | (ind.periods < settings.min_periods)
+    checks = [g.frozen, g.saturated > settings.max_saturated,
+              (g.compressed > settings.max_compressed) & (g.longest_flat <= settings.max_flat_run),
+              g.setpoint_share > settings.max_setpoint_share, few]
+    code = jnp.asarray(0, jnp.int32)
+    for k, failed in reversed(list(enumerate(checks, start=1))):
+        code = jnp.where(failed, k, code)
+    return code
 
 
 def residual_line(r, weights, min_period: float, max_fraction: float):
@@ -166,10 +212,12 @@ def usable(result) -> Bool[Array, ""]:
 
 
 @eqx.filter_jit  # its scored simulation and predictions cost seconds run eagerly
-def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> Verdict:
+def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
+            calibration: Calibration = CALIBRATION) -> Verdict:
     """The stiction verdict and cause of one loop from its
-    [`jaxstiction.LoopFit`][] (see the module notes). Pure and jitted; vmap it with
-    `estimate`."""
+    [`jaxstiction.LoopFit`][] (see the module notes). `loop.sp`, when recorded,
+    gives the control error; `calibration`: the probability's coefficients. Pure
+    and jitted; vmap it with `estimate`."""
     slip = fit.fitness_physical - fit.fitness_deadband
     slip_est = fit.fitness_physical_estimation - fit.fitness_deadband_estimation
     span = fit.op_range[1] - fit.op_range[0]
@@ -177,6 +225,7 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> V
     ok = usable(fit.result) & jnp.isfinite(fit.fitness_physical) & jnp.isfinite(fit.fitness_linear)
     op = jnp.where(loop.mask > 0, loop.op, 0.0)
     pv = jnp.where(loop.mask > 0, loop.pv, 0.0)
+    sp = loop.setpoint
     w_est, w_val = estimation_parts(loop.mask, fit.n_estimation, fit.n_validation)
     if settings.trend_degree is None:
         gain = fit.fitness_physical - fit.fitness_linear
@@ -209,15 +258,38 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings()) -> V
                       settings.max_fraction) for m in (fit.linear, fit.physical))
     persists = (share > settings.oscillation) & (share_k > settings.oscillation) & (
         jnp.abs(period_k - period) <= settings.same_line * period)
-    sticky = ok & (band >= settings.min_band) & ~persists & (
+    model_wins = ok & (band >= settings.min_band) & ~persists & (
         wins(gain, gain_est) | (wins(*pred) & (band >= settings.prediction_band)))
+
+    ind = indicators(op, pv, sp, loop.mask)
+    cv = crossval_gain(op, pv, loop.mask, folds=settings.crossval_folds, horizon=settings.crossval_horizon)
+    nan = jnp.asarray(jnp.nan, op.dtype)
+    x = features(ind, cv, jnp.where(ok, gain, nan), jnp.where(ok, pred[0], nan), jnp.where(ok, gain_est, nan),
+                 jnp.where(ok, band, nan))
+    probability = calibration.probability(x)
+    measures = gate_measures(op, pv, sp, loop.mask)
+    code = gate(measures, ind, settings)
+    hard = jnp.zeros((), bool)
+    for name in HARD:
+        hard = hard | (code == GATES.index(name))
+    sticky = ok & ~hard & (probability >= settings.threshold)
+    conclusive = ok & ~hard & (sticky | (code == 0))
+    which = jnp.where(sticky, 1, jnp.where(conclusive, 0, 2)).astype(jnp.int32)
     slips = jnp.maximum(slip, slip_est) > settings.min_slip_gain
     external = ok & (share > settings.oscillation)
     cause = jnp.where(sticky, 1, jnp.where(external, 2, 0))
     return Verdict(
+        verdict=which,
         stiction_detected=sticky,
+        probability=probability,
+        gate=code,
+        gate_measures=measures,
         cause=cause.astype(jnp.int32),
         slip_identified=sticky & slips,
+        indicators=ind,
+        crossval=cv,
+        features=x,
+        model_wins=model_wins,
         evidence=gain,
         evidence_estimation=gain_est,
         evidence_prediction=pred[0],
