@@ -17,6 +17,7 @@ loop's diagnosis is one more task.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import math
 import threading
@@ -34,7 +35,8 @@ from .._estimate.settings import Settings
 from .._loop import Loop, make_loop, stack
 from .._misc import json_number as _r, thread_map
 from .._verdict.settings import VerdictSettings
-from .._verdict.verdict import CAUSES, usable, verdict
+from .._verdict.gate import GATES, gate_reason
+from .._verdict.verdict import CAUSES, FEATURES, usable, verdict, VERDICTS
 from .settings import ScreenSettings
 
 
@@ -62,12 +64,14 @@ def _verdicts(fits, loops: Loop, vset: VerdictSettings):
 
 def _batch(loops: Loop, settings: Settings, vset: VerdictSettings):
     # `filter_vmap` of the jitted `estimate` (the documented batched contract): its
-    # compiled batch is shared with any other such call of the same shapes.
-    fits = eqx.filter_vmap(lambda lp: estimate(lp, settings))(loops)
+    # compiled batch is shared with any other such call of the same shapes (the
+    # setpoint is the verdict's alone, so `estimate` sees loops without it).
+    fits = eqx.filter_vmap(lambda lp: estimate(lp, settings))(dataclasses.replace(loops, sp=None))
     return fits, _verdicts(fits, loops, vset)
 
 
-def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool) -> dict:
+def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool,
+            vset: VerdictSettings = VerdictSettings()) -> dict:
     """One loop's screen entry (JSON-ready, plus a `figure` of NumPy arrays when
     `pictures`) from its unbatched host-side fit and verdict."""
     converged = bool(fit.result == RESULTS.successful)
@@ -78,6 +82,15 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
              (f"the Kano valve leaves the linear fit's oscillation (period {float(ver.period):.0f} samples) in "
               "its residual: a disturbance from elsewhere, not the valve's cycle") if ok and bool(ver.line_persists)
              else ""]
+    ind, g = ver.indicators, ver.gate_measures
+    gate = GATES[int(ver.gate)]
+    reason = gate_reason(int(ver.gate), saturated=float(g.saturated), compressed=float(g.compressed),
+                         setpoint_share=float(g.setpoint_share), min_periods=vset.min_periods)
+    which = VERDICTS[int(ver.verdict)]
+    if not ok:
+        reason = RESULTS[fit.result]
+    elif which == "stiction" and reason:
+        notes.append(f"called sticky although {reason}")
     rec = {
         "name": name,
         "file": file,
@@ -86,9 +99,23 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "note": "; ".join(n for n in notes if n),
         "samples": int(op.shape[0]),
         "Ts": float(ts),
+        "verdict": which,
         "stiction_detected": bool(ver.stiction_detected),
+        "stiction_probability": _r(ver.probability),
+        "gate": gate,
+        "reason": reason if which == "inconclusive" else "",
         "cause": cause if ok else None,
+        "band_seen": bool(ver.stiction_detected),
         "slip_identified": bool(ver.slip_identified) if ok else None,
+        "model_wins": bool(ver.model_wins),
+        "indicators": {"period_samples": _r(ind.period, 1), "regularity": _r(ind.regularity),
+                       "oscillation_share": _r(ind.share), "periods": _r(ind.periods, 1), "horch": _r(ind.horch),
+                       "shape_op": _r(ind.shape_op), "shape_pv": _r(ind.shape_pv), "ngi": _r(ind.ngi, 4),
+                       "nli": _r(ind.nli, 4), "stuck_pv": _r(ind.stuck_pv), "stuck_dpv": _r(ind.stuck_dpv)},
+        "crossval": [_r(v, 2) for v in np.asarray(ver.crossval)],
+        "features": {k: _r(v, 4) for k, v in zip(FEATURES, np.asarray(ver.features))},
+        "gate_measures": {"saturated": _r(g.saturated), "compressed": _r(g.compressed),
+                          "longest_flat": _r(g.longest_flat), "setpoint_share": _r(g.setpoint_share)},
         # the Kano fit's band, which the verdict judges, whichever family `estimate`
         # chose (the linear valve's band is 0)
         "band_percent": _r(fit.S if math.isfinite(float(fit.S)) else fit.band_percent),
@@ -132,7 +159,7 @@ def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSe
     if enable_x64:
         jax.config.update("jax_enable_x64", True)
     items = list(items)
-    loops = [make_loop(op, pv, ts) for (_, _, op, pv, ts) in items]
+    loops = [make_loop(it[2], it[3], it[4], sp=setpoint_of(it)) for it in items]
     loops += [loops[0]] * (size - len(loops))
     try:
         batch = stack(loops, length)
@@ -146,21 +173,33 @@ def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSe
             for it in items:
                 out += run_chunk([it], length, 1, settings, pictures=pictures)
             return out
-        name, file, op, pv, ts = items[0]
+        name, file, op, pv, ts = items[0][:5]
         return [_error(name, file, f"fit failed: {error_line(e, 300)}", op.shape[0], ts)]
     out = []
-    for i, (name, file, op, pv, ts) in enumerate(items):
+    for i, it in enumerate(items):
+        name, file, op, pv, ts = it[:5]
         fit, ver = jax.tree.map(lambda x: np.asarray(x[i]), (fits, vers))
         try:
-            out.append(_record(name, file, op, pv, ts, fit, ver, settings.estimate, pictures))
+            out.append(_record(name, file, op, pv, ts, fit, ver, settings.estimate, pictures, settings.verdict))
         except Exception as e:  # noqa: BLE001
             out.append(_error(name, file, f"report failed: {error_line(e, 300)}", op.shape[0], ts))
     return out
 
 
+def setpoint_of(item: tuple):
+    """The setpoint of a screen item `(name, file, op, pv, ts[, sp])`, or `None`."""
+    return item[5] if len(item) > 5 else None
+
+
 def _error(name, file, message, samples=None, ts=None) -> dict:
+    """The entry of a loop that could not be judged: its `status` is the one-line
+    reason, and so is the `inconclusive` verdict's `reason`."""
+    gate = "frozen_sensor" if "is constant" in message and "`PV`" in message else "data_error"
     return {"name": name, "file": file, "status": message, "samples": samples, "Ts": ts,
-            "stiction_detected": False, "cause": None, "band_percent": None, "fitness": None}
+            "verdict": "inconclusive", "stiction_detected": False, "stiction_probability": None, "gate": gate,
+            "reason": (f"{gate_reason(GATES.index('frozen_sensor'))} ({message})" if gate == "frozen_sensor"
+                       else message),
+            "cause": None, "band_percent": None, "fitness": None}
 
 
 def _chunks(items, settings: ScreenSettings):
@@ -225,7 +264,8 @@ def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
             try:
                 out += fut.result()
             except Exception as e:  # noqa: BLE001 - a lost worker costs only its chunk
-                out += [_error(m[0], m[1], f"task failed: {error_line(e, 300)}", m[2].shape[0], m[4]) for m in members]
+                out += [_error(m[0], m[1], f"task failed: {error_line(e, 300)}", m[2].shape[0], m[4])
+                        for m in members]
             if progress is not None:
                 progress(len(members))
         return out

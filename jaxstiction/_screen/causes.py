@@ -81,14 +81,14 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
     todo.sort(key=lambda i: by_name[out[i]["name"]][2].shape[0])  # see `diagnose_entry`
     if scheduler is None:
         for i in todo:
-            _, _, op, pv, ts = by_name[out[i]["name"]]
+            _, _, op, pv, ts = by_name[out[i]["name"]][:5]
             out[i] = diagnose_entry(out[i], op, pv, ts, settings)
             if progress is not None:
                 progress(1)
         return out
     x64 = bool(jax.config.jax_enable_x64)
     with _dask_client(scheduler) as (client, as_completed):
-        futures = {client.submit(diagnose_entry, out[i], *by_name[out[i]["name"]][2:], settings, enable_x64=x64,
+        futures = {client.submit(diagnose_entry, out[i], *by_name[out[i]["name"]][2:5], settings, enable_x64=x64,
                                  pure=False): i for i in todo}
         for fut in as_completed(futures):
             i = futures[fut]

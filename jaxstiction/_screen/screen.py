@@ -42,7 +42,8 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
     """Read and check every loop under `paths` (files and folders, their subfolders
     too with `recursive`; a `.mat` file, or a CSV file with tagged columns, may hold
     several loops: see [`jaxstiction.list_loops`][]). Returns `(items,
-    errors, warned)`: `(name, file, op, pv, ts)` tuples ready to fit, error entries
+    errors, warned)`: `(name, file, op, pv, ts, sp)` tuples ready to fit (`sp` `None`
+    without a recorded setpoint), error entries
     (one line each) for the loops that cannot be, and the
     [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name. Names
     are unique: a name met again gets its folder in front (`unit2/FC101`). Every
@@ -66,7 +67,7 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
                     warnings.simplefilter("always", LoopDataWarning)
                     loop = decimated(read_loop(path, ts=ts, name=sub), decimate)
                 op, pv = checked(np.asarray(loop.op), np.asarray(loop.pv), name, settings.estimate)
-                items.append((name, str(path), op, pv, float(loop.ts)))
+                items.append((name, str(path), op, pv, float(loop.ts), _setpoint(loop)))
                 said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
                 if said:
                     warned[name] = "; ".join(said)
@@ -88,14 +89,14 @@ def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSe
                  progress: Callable[[int], Any] | None = None, scheduler: Any = None,
                  pictures: bool = False) -> list[dict]:
     """Screen loops already in memory. `loops`: a mapping name → [`jaxstiction.Loop`][]
-    (real samples only), or `(name, file, op, pv, ts)` items as from `read_items`.
+    (real samples only), or `(name, file, op, pv, ts[, sp])` items as from `read_items`.
     Returns one entry per loop, in input order (see [`jaxstiction.screen`][])."""
     if isinstance(loops, Mapping):
         items, errors = [], []
         for name, lp in loops.items():
             try:
                 op, pv = _checked_loop(lp, name, settings)
-                items.append((name, None, op, pv, float(np.asarray(lp.ts))))
+                items.append((name, None, op, pv, float(np.asarray(lp.ts)), _setpoint(lp)))
             except ValueError as e:
                 errors.append(_error(name, None, _message(e)))
     else:
@@ -103,6 +104,13 @@ def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSe
     order = {it[0]: i for i, it in enumerate(items)}
     results = errors + _run(items, settings, progress, scheduler, pictures)
     return sorted(results, key=lambda r: order.get(r["name"], -1))
+
+
+def _setpoint(lp: Loop):
+    """The real samples of the loop's setpoint as a NumPy array, or `None`."""
+    if lp.sp is None:
+        return None
+    return np.asarray(lp.sp)[np.asarray(lp.mask) > 0]
 
 
 def _checked_loop(lp: Loop, name, settings):

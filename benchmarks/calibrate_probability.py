@@ -1,0 +1,285 @@
+"""The stiction probability: fit it, and measure it where it was not fitted.
+
+    python benchmarks/calibrate_probability.py                       # fit on seeds 0-399, check on 400-599
+    python benchmarks/calibrate_probability.py --write               # ... and write jaxstiction/_verdict/calibration.py
+    python benchmarks/calibrate_probability.py --fit-seeds 0-99 --check-seeds 100-149   # quick
+
+Evidence comes from `jaxstiction.screen_loops`, exactly as `jaxstiction screen`
+computes it, for three sets of loops:
+
+- the simulated realistic fleet (`jaxstiction.internal.realistic_fleet`): seeds
+  `--fit-seeds` to fit, `--check-seeds` to check (never fitted on);
+- the real plant records of the development half (`--plant`, default
+  `../shared/data/plant`: labels in its `labels.json`, frozen-sensor and too-short
+  records are not judgeable);
+- the six labelled ISDB loops (`--isdb`, default `../shared/data/isdb`; the eight
+  withheld ones are screened and printed, never fitted on or scored).
+
+The probability's coefficients are fitted (`fit_calibration`: an L2-penalised
+logistic regression) on the fit seeds and the real labelled records together, the
+real records weighted so that they carry a third of the total weight. Printed:
+
+- the fitted coefficients (written to `jaxstiction/_verdict/calibration.py` with
+  `--write`);
+- on the check seeds: a reliability table (predicted against observed stiction
+  rate, by probability decile) and the balanced accuracy of `stiction_detected`,
+  counting `inconclusive` as not sticky, by kind, and over the loops whose valve
+  slipped at least four times in the record (a sticky valve that never moves cannot
+  be seen);
+- on the plant development half: **leave-one-valve-out** figures. For each valve,
+  the coefficients are refitted without that valve's recordings and its recordings
+  are judged with them (the gate as shipped); balanced accuracy over recordings and
+  over valves (a valve's verdict is the majority of its recordings). The same for
+  the ISDB loops, each left out in turn;
+- the same figures with the probability fitted on the simulated fleet alone (no
+  real record seen: a pure out-of-sample check on every real record).
+
+The screened evidence is cached in `benchmarks/out/` (keyed by the seeds and the
+data folders); `--fresh` recomputes it.
+"""
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+
+import jaxstiction as js  # noqa: E402
+from jaxstiction.internal import FEATURES, fit_calibration, HARD, realistic_fleet  # noqa: E402
+
+
+HERE = pathlib.Path(__file__).resolve().parent
+SHARED = HERE.parents[1] / "shared" / "data"
+ISDB_LABELS = {"CHEM1": True, "CHEM10": True, "CHEM23": True, "CHEM13": False, "PAP4": False, "PAP7": False}
+REAL_SHARE = 1 / 3  # of the total weight carried by the real records
+
+
+def fleet_entries(seeds, threads):
+    """Screen entries of the fleet draws `seeds`, with their truth."""
+    fleet = realistic_fleet(seeds)
+    loops = {f"s{f.seed}": js.make_loop(f.op, f.pv, 1.0, sp=f.sp) for f in fleet}
+    t0 = time.time()
+    entries = js.screen_loops(loops, js.ScreenSettings(threads=threads))
+    print(f"screened {len(loops)} fleet loops in {time.time() - t0:.0f} s", flush=True)
+    truth = {}
+    for f in fleet:
+        moving = np.abs(np.diff(f.valve)) > 1e-9
+        slips = int(np.sum(moving[1:] & ~moving[:-1]))
+        truth[f"s{f.seed}"] = {"sticky": f.sticky, "kind": f.kind, "slips": slips, "integrating": f.integrating}
+    return [{**e, "truth": truth[e["name"]]} for e in entries]
+
+
+def real_entries(plant: pathlib.Path, isdb: pathlib.Path, threads):
+    """Screen entries of the real records, with `label` (True, False, or None when not
+    judgeable or withheld), `valve` and `set`."""
+    out = []
+    if (plant / "labels.json").exists():
+        labels = json.loads((plant / "labels.json").read_text())["loops"]
+        for e in js.screen(plant, js.ScreenSettings(threads=threads)).loops:
+            info = labels.get(e["name"], {})
+            judgeable = e["status"] == "ok"
+            out.append({**e, "set": "plant", "valve": info.get("valve", e["name"]),
+                        "label": (info.get("label") == "stiction") if info and judgeable else None,
+                        "label_given": info.get("label")})
+    if isdb.exists():
+        for e in js.screen(isdb, js.ScreenSettings(threads=threads)).loops:
+            out.append({**e, "set": "isdb", "valve": e["name"], "label": ISDB_LABELS.get(e["name"])})
+    return out
+
+
+def cached(path: pathlib.Path, make, fresh: bool):
+    if path.exists() and not fresh:
+        return json.loads(path.read_text())
+    value = make()
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps(value))
+    return value
+
+
+def matrix(entries):
+    return np.array([[e["features"][k] for k in FEATURES] for e in entries], float)
+
+
+def fit(sim, real):
+    """Calibration fitted on fleet entries `sim` (truth) and real entries `real` (label)."""
+    X = np.concatenate([matrix(sim), matrix(real)]) if real else matrix(sim)
+    y = np.array([e["truth"]["sticky"] for e in sim] + [e["label"] for e in real], float)
+    w = np.ones(len(y))
+    if real:
+        w[len(sim):] = REAL_SHARE / (1 - REAL_SHARE) * len(sim) / len(real)
+    return fit_calibration(X, y, w, names=FEATURES)
+
+
+def called(entry, calibration, threshold=0.5):
+    """Whether `entry` is called sticky with `calibration`: the gate as the screen
+    applied it (hard gates and failed fits are never sticky), then the probability."""
+    if entry["status"] != "ok" or entry["gate"] in HARD:
+        return False
+    x = np.array([entry["features"][k] for k in FEATURES])
+    return float(calibration.probability(x)) >= threshold
+
+
+def balanced(pairs):
+    """Balanced accuracy of `(called, truth)` pairs, with the counts."""
+    pos = [c for c, t in pairs if t]
+    neg = [not c for c, t in pairs if not t]
+    tpr = np.mean(pos) if pos else float("nan")
+    tnr = np.mean(neg) if neg else float("nan")
+    return 0.5 * (tpr + tnr), sum(pos), len(pos), sum(neg), len(neg)
+
+
+def fmt(ba):
+    return f"{ba[0]:.3f} (sticky {ba[1]}/{ba[2]}, healthy {ba[3]}/{ba[4]})"
+
+
+def lovo(sim, real, pool, with_real=True):
+    """Leave-one-valve-out calls on the labelled entries of `pool` (a subset of
+    `real`): each valve judged by coefficients fitted without its recordings."""
+    calls = {}
+    for valve in sorted({e["valve"] for e in pool}):
+        train = [e for e in real if e["valve"] != valve and e["label"] is not None] if with_real else []
+        cal = fit(sim, train)
+        for e in pool:
+            if e["valve"] == valve:
+                calls[e["name"]] = called(e, cal)
+    return calls
+
+
+def by_valve(pool, calls):
+    valves = {}
+    for e in pool:
+        valves.setdefault(e["valve"], []).append((calls[e["name"]], e["label"]))
+    return [(sum(c for c, _ in v) > len(v) / 2, v[0][1]) for v in valves.values()]
+
+
+def report_real(title, sim, real, with_real):
+    plant = [e for e in real if e["set"] == "plant" and e["label"] is not None]
+    isdb = [e for e in real if e["set"] == "isdb" and e["label"] is not None]
+    print(f"\n{title}")
+    if plant:
+        calls = lovo(sim, real, plant, with_real)
+        print("  plant development half, leave-one-valve-out:")
+        print(f"    recordings: balanced accuracy {fmt(balanced([(calls[e['name']], e['label']) for e in plant]))}")
+        print(f"    valves:     balanced accuracy {fmt(balanced(by_valve(plant, calls)))}")
+        for e in sorted(plant, key=lambda e: (e["valve"], e["name"])):
+            print(f"      {e['name']:6s} {e['valve']:26s} label {'stiction' if e['label'] else 'none':8s} "
+                  f"called {'sticky' if calls[e['name']] else '-':6s} gate {e['gate']}")
+    if isdb:
+        calls = lovo(sim, real, isdb, with_real)
+        print(f"  ISDB labelled, each left out: {fmt(balanced([(calls[e['name']], e['label']) for e in isdb]))}")
+
+
+def reliability(check, cal):
+    p = np.array([float(cal.probability(np.array([e["features"][k] for k in FEATURES]))) for e in check])
+    y = np.array([e["truth"]["sticky"] for e in check])
+    print("\n  reliability on the check seeds (probability decile: mean predicted, observed sticky rate, loops)")
+    edges = np.linspace(0, 1, 11)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (p >= lo) & (p < hi if hi < 1 else p <= hi)
+        if m.any():
+            print(f"    [{lo:.1f}, {hi:.1f}): {p[m].mean():.2f}  {y[m].mean():.2f}  {m.sum()}")
+    brier = float(np.mean((p - y) ** 2))
+    print(f"    Brier score {brier:.3f} (a constant at the base rate {y.mean():.2f}: {y.mean() * (1 - y.mean()):.3f})")
+
+
+def report_sim(check, cal):
+    ok = [e for e in check if e["status"] == "ok"]
+    print(f"\n  check seeds: {len(check)} loops, {len(check) - len(ok)} not fitted (their status), "
+          f"{sum(e['gate'] != 'ok' for e in ok)} gated")
+    calls = [(called(e, cal), e["truth"]["sticky"]) for e in check]
+    print(f"    balanced accuracy (inconclusive = not sticky): {fmt(balanced(calls))}")
+    seen = [(called(e, cal), e["truth"]["sticky"]) for e in check
+            if not e["truth"]["sticky"] or e["truth"]["slips"] >= 4]
+    print(f"    over loops whose sticky valve slipped >= 4 times: {fmt(balanced(seen))}")
+    conclusive = [(called(e, cal), e["truth"]["sticky"]) for e in check
+                  if e["status"] == "ok" and e["gate"] == "ok"]
+    print(f"    over the loops the gate passes: {fmt(balanced(conclusive))}")
+    for kind in ("stiction", "deadband", "linear", "tight", "external"):
+        k = [called(e, cal) for e in check if e["truth"]["kind"] == kind]
+        if k:
+            print(f"      {kind:9s} called sticky {sum(k)}/{len(k)}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--fit-seeds", type=seeds_arg, default=seeds_arg("0-399"))
+    parser.add_argument("--check-seeds", type=seeds_arg, default=seeds_arg("400-599"))
+    parser.add_argument("--plant", type=pathlib.Path, default=SHARED / "plant")
+    parser.add_argument("--isdb", type=pathlib.Path, default=SHARED / "isdb")
+    parser.add_argument("--threads", type=int, default=0)
+    parser.add_argument("--write", action="store_true", help="write jaxstiction/_verdict/calibration.py")
+    parser.add_argument("--fresh", action="store_true", help="recompute the cached evidence")
+    args = parser.parse_args()
+
+    out = HERE / "out"
+    sim = cached(out / f"fleet_{seeds_text(args.fit_seeds)}.json",
+                 lambda: fleet_entries(args.fit_seeds, args.threads), args.fresh)
+    check = cached(out / f"fleet_{seeds_text(args.check_seeds)}.json",
+                   lambda: fleet_entries(args.check_seeds, args.threads), args.fresh)
+    real = cached(out / "real.json", lambda: real_entries(args.plant, args.isdb, args.threads), args.fresh)
+    sim = [e for e in sim if e["status"] == "ok"]
+    labelled = [e for e in real if e["label"] is not None]
+
+    cal = fit(sim, labelled)
+    print(f"\nfitted on {len(sim)} fleet loops (seeds {seeds_text(args.fit_seeds)}) and {len(labelled)} labelled "
+          f"real records ({REAL_SHARE:.0%} of the weight)")
+    for k, m, s, w in zip(FEATURES, np.asarray(cal.mean), np.asarray(cal.scale), np.asarray(cal.weights)):
+        print(f"  {k:20s} mean {m:8.4f} scale {s:8.4f} weight {w:8.4f}")
+    print(f"  bias {float(cal.bias):.4f}")
+    reliability(check, cal)
+    report_sim(check, cal)
+    report_real("Real records, the probability fitted on the fleet and the other real records:", sim, real, True)
+    report_real("Real records, the probability fitted on the simulated fleet alone:", sim, real, False)
+    withheld = [e for e in real if e["set"] == "isdb" and e["label"] is None]
+    if withheld:
+        print("\n  withheld ISDB loops (never fitted on), with the coefficients above:")
+        for e in withheld:
+            print(f"    {e['name']:7s} called {'sticky' if called(e, cal) else '-'} (gate {e['gate']})")
+    if args.write:
+        write(cal, args)
+
+
+def write(cal, args):
+    import textwrap
+
+    def arr(v):
+        body = ", ".join(f"{float(x):.6g}" for x in np.asarray(v))
+        return "np.array([\n" + textwrap.fill(body, 100, initial_indent=" " * 8, subsequent_indent=" " * 8) + "\n    ])"
+
+    names = textwrap.fill(", ".join(repr(k) for k in FEATURES), 100, initial_indent=" " * 8,
+                          subsequent_indent=" " * 8)
+
+    text = f'''"""The stiction probability's coefficients (a leaf: fitted numbers only).
+
+Written by `python benchmarks/calibrate_probability.py --write` (fit seeds
+{seeds_text(args.fit_seeds)} of the realistic fleet and the labelled real records of
+the plant development half and the ISDB); do not edit by hand.
+"""
+
+import numpy as np
+
+from .probability import Calibration
+
+
+CALIBRATION = Calibration(
+    names=(\n{names},\n    ),
+    mean={arr(cal.mean)},
+    scale={arr(cal.scale)},
+    weights={arr(cal.weights)},
+    bias=np.array({float(cal.bias):.6g}),
+)
+'''
+    path = HERE.parent / "jaxstiction" / "_verdict" / "calibration.py"
+    path.write_text(text)
+    print(f"\nwrote {path}")
+
+
+if __name__ == "__main__":
+    main()
