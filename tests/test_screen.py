@@ -266,20 +266,23 @@ def test_screen_entries_equal_single_fits(fleet, screened):
     (60.5, 50.0, False, False),  # Kano gains only 0.5 point over the linear valve
 ])
 def test_verdict_rule(fleet, kano, deadband, sticky, slip):
-    """The verdict's simulation rule on chosen scores: Kano against the linear valve
-    (60 %) decides `stiction_detected` (the prediction rule is switched off here, and
-    the gains are the fit's plain scores, `trend_degree=None`); the deadband only
-    decides whether the slip is identified."""
+    """The model-based rule on chosen scores: Kano against the linear valve (60 %)
+    decides `model_wins` (the prediction rule is switched off here, and the gains
+    are the fit's plain scores, `trend_degree=None`); the deadband only decides
+    whether the slip would be identified."""
     _, good, _ = fleet
     f = _with_scores(js.estimate(good[1], SMALL), kano, deadband, 0.5)
-    v = js.verdict(f, good[1], js.VerdictSettings(prediction_band=2.0, trend_degree=None))
-    assert bool(v.stiction_detected) == sticky and bool(v.slip_identified) == slip
-    assert js.CAUSES[int(v.cause)] in (("stiction",) if sticky else ("none", "external_oscillation"))
+    settings = js.VerdictSettings(prediction_band=2.0, trend_degree=None)
+    v = js.verdict(f, good[1], settings)
+    assert bool(v.model_wins) == sticky
+    assert (max(float(v.slip_evidence), float(v.slip_evidence_estimation)) > settings.min_slip_gain) == slip
+    assert bool(v.slip_identified) == (slip and bool(v.stiction_detected))
+    assert js.CAUSES[int(v.cause)] in (("stiction",) if bool(v.stiction_detected) else ("none", "external_oscillation"))
 
 
 def test_verdict_oscillation_the_kano_valve_leaves_is_not_its_cycle(fleet):
-    """A Kano valve that wins on the scores is not called sticky when its residual
-    keeps the linear valve's narrow line (here the two models are made one, so the
+    """A Kano valve that wins on the scores does not win the model-based test when
+    its residual keeps the linear valve's narrow line (here the two models are made one, so the
     lines coincide; `oscillation` sets the share a line needs): the cause is then
     the external oscillation."""
     import equinox as eqx
@@ -288,13 +291,13 @@ def test_verdict_oscillation_the_kano_valve_leaves_is_not_its_cycle(fleet):
     same = eqx.tree_at(lambda m: m.physical, f, f.linear)
     off = js.VerdictSettings(prediction_band=2.0, oscillation=0.0, trend_degree=None)
     v = js.verdict(same, good[1], off)
-    assert bool(v.line_persists) and not bool(v.stiction_detected)
-    assert js.CAUSES[int(v.cause)] == "external_oscillation"
+    assert bool(v.line_persists) and not bool(v.model_wins)
+    assert js.CAUSES[int(v.cause)] == ("stiction" if bool(v.stiction_detected) else "external_oscillation")
     assert float(v.oscillation_kano) == pytest.approx(float(v.oscillation))
     # a line under the threshold in either residual does not clear the valve
     v = js.verdict(same, good[1], js.VerdictSettings(prediction_band=2.0, oscillation=float(v.oscillation) + 1e-6,
                                                     trend_degree=None))
-    assert not bool(v.line_persists) and bool(v.stiction_detected)
+    assert not bool(v.line_persists) and bool(v.model_wins)
 
 
 def test_verdict_gains_are_trend_free_simulation_gains(fleet):
@@ -356,7 +359,7 @@ def test_verdict_prediction_rule(fleet):
         v = js.verdict(_with_scores(f0, 55.0, 55.0, band), loop, settings)
         assert float(v.evidence) == pytest.approx(-5.0)
         assert [float(v.evidence_prediction), float(v.evidence_prediction_estimation)] == pytest.approx(g)
-        assert bool(v.stiction_detected) == sticky
+        assert bool(v.model_wins) == sticky
 
 
 def test_report_files(screened, tmp_path):

@@ -39,10 +39,19 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
    explanations of the same mismatch (never fitted together with the verdict's),
    marked `alternative_to` and not accepted. Effects that no deterministic block
    can predict (quantisation; drift) are named from their own evidence and reported with no simulation gain.
+4. **One stiction policy with the screen** (no nominal model only): the screen's
+   stiction verdict ([`jaxstiction.verdict`][], its light `estimate` on the same
+   record) decides whether the valve sticks. A sticky valve is named `stiction` when
+   its slip is identified, else `deadband` (a band with no visible slip: the J = 0
+   member of the Kano family; to a plant engineer the same valve fault); a valve
+   it does not call sticky is named neither. `Diagnosis.stiction` holds that
+   verdict (probability, band seen, slip identified, gate and reason) and a note
+   when it changed the name.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -50,7 +59,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._blocks import EqualPercentage, Sinusoid
+from .._estimate.estimate import estimate
+from .._estimate.settings import SCREEN_ESTIMATE
 from .._filters import lfilter
+from .._loop import make_loop
+from .._verdict.gate import GATES, gate_reason
+from .._verdict.settings import VerdictSettings
+from .._verdict.verdict import verdict, VERDICTS
 from .._models import LoopModel, NoiseModel
 from .candidates import _arma11, _fit_sinusoid, _quantisation
 from .characteristic import rangeability_profile
@@ -90,6 +105,7 @@ class Diagnosis(eqx.Module):
     runner_up: str | None = eqx.field(static=True)
     n_estimation: int = eqx.field(static=True)
     series: dict
+    stiction: dict | None = None
 
     @property
     def accepted(self) -> tuple[str, ...]:
@@ -107,6 +123,7 @@ class Diagnosis(eqx.Module):
             "located": self.located,
             "heldout_nominal": self.heldout_nominal,
             "not_identifiable": list(self.not_identifiable),
+            "stiction": self.stiction,
             "samples": {"estimation": self.n_estimation,
                         "heldout": int(len(self.series["pv"]) - self.n_estimation)},
         }
@@ -190,6 +207,13 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
             proof.before, proof.before, True))
         if verdict == "none":
             verdict = "quantization"
+    stiction = None
+    if not b.given:  # one stiction policy with the screen (see `_screen_policy`)
+        stiction = _stiction_verdict(loop, b)
+        verdict, said = _screen_policy(verdict, findings, stiction)
+        if said:
+            stiction["note"] = said
+            say(said)
     order = {f.effect: i for i, f in enumerate(ordered)}  # the alternatives follow in their rank
     findings.sort(key=lambda f: (not f.accepted, order.get(f.effect, len(order)), -f.evidence.get("statistic", -1e9)
                                  if f.evidence.get("statistic") is not None else 0.0))
@@ -199,7 +223,47 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
               "spectrum": spectrum_lines(b.z[:b.n_est])}
     return Diagnosis(verdict=verdict, findings=tuple(findings), located=located, nominal=b.nominal, model=model,
                      heldout_nominal=proof.before, not_identifiable=_not_identifiable(verdict, findings, b.given),
-                     runner_up=runner, n_estimation=b.n_est, series=series)
+                     runner_up=runner, n_estimation=b.n_est, series=series, stiction=stiction)
+
+
+def _stiction_verdict(loop, b: _Baseline) -> dict:
+    """The screen's stiction verdict of the loop (its light `estimate` and
+    [`jaxstiction.verdict`][], the setpoint included when recorded), as plain
+    values."""
+    real = np.asarray(loop.mask) > 0
+    sp = None if loop.sp is None else np.asarray(loop.sp)[real]
+    lp = make_loop(b.op, b.pv, float(np.asarray(loop.ts)), sp=sp)
+    fit = estimate(dataclasses.replace(lp, sp=None), SCREEN_ESTIMATE)
+    v = verdict(fit, lp)
+    code = int(v.gate)
+    g = v.gate_measures
+    reason = gate_reason(code, saturated=float(g.saturated), compressed=float(g.compressed),
+                         setpoint_share=float(g.setpoint_share), min_periods=VerdictSettings().min_periods)
+    which = VERDICTS[int(v.verdict)]
+    return {"verdict": which, "probability": round(float(v.probability), 3), "band_seen": bool(v.stiction_detected),
+            "slip_identified": bool(v.slip_identified), "gate": GATES[code],
+            "reason": reason if which == "inconclusive" else ""}
+
+
+def _screen_policy(verdict: str, findings, stiction: dict) -> tuple[str, str]:
+    """One stiction policy for `diagnose` (no nominal model) and the screen: the
+    valve is sticky when the screen's verdict says so. A sticky valve is named
+    `stiction` when its slip is identified, else `deadband` (the J = 0 member of the
+    Kano family: a band with no visible slip), unless the diagnosis already named
+    one of the two; a valve the verdict does not call sticky is named neither, and
+    the next accepted effect (or `none`) stands. Returns the verdict and a note
+    saying what changed ("" when nothing did)."""
+    valve = ("stiction", "deadband")
+    if stiction["verdict"] == "stiction" and verdict not in valve:
+        named = "stiction" if stiction["slip_identified"] else "deadband"
+        return named, (f"the stiction verdict calls the valve sticky (probability {stiction['probability']:.2f}): "
+                       f"named {named} instead of {verdict}")
+    if stiction["verdict"] != "stiction" and verdict in valve:
+        others = [f.effect for f in findings if f.accepted and f.effect not in valve]
+        named = others[0] if others else "none"
+        why = stiction["reason"] or f"probability {stiction['probability']:.2f}"
+        return named, f"the stiction verdict does not call the valve sticky ({why}): {verdict} is not named"
+    return verdict, ""
 
 
 def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
