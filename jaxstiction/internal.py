@@ -90,8 +90,8 @@ from ._estimate.relax import (
 )
 from ._estimate.result import delay_note as delay_note, held_out_note as held_out_note
 from ._estimate.settings import FULL_SEARCH_ESTIMATE as FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE as SCREEN_ESTIMATE
-from ._fleet import FleetLoop as FleetLoop, KINDS as FLEET_KINDS, realistic_fleet as realistic_fleet
 from ._filters import lagged as lagged, steady_state as steady_state
+from ._fleet import FleetLoop as FleetLoop, KINDS as FLEET_KINDS, realistic_fleet as realistic_fleet
 from ._linalg import is_stable as is_stable, lstsq as lstsq
 from ._misc import (
     chunked_vmap as chunked_vmap,
@@ -144,8 +144,8 @@ from ._verdict.indicators import (
 )
 from ._verdict.probability import Calibration as Calibration, fit_calibration as fit_calibration
 from ._verdict.verdict import (
-    features as features,
     FEATURES as FEATURES,
+    features as features,
     gate as gate,
     residual_line as residual_line,
     usable as usable,

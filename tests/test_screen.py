@@ -59,16 +59,17 @@ def test_bucket_ladder():
     assert chunk_size(1500, js.ScreenSettings()) == js.ScreenSettings().chunk
 
 
-def test_rank_by_the_larger_heldout_gain():
-    """Sticky loops first, by their larger held-out gain (simulation or prediction),
-    then the other fitted loops, then errors."""
-    def entry(name, sticky, ev, pred, status="ok"):
-        return {"name": name, "status": status, "stiction_detected": sticky, "evidence": ev,
-                "evidence_prediction": pred, "band_percent": 1.0}
+def test_rank_by_probability_and_severity():
+    """Sticky loops first, by probability times band; then inconclusive and
+    non-sticky loops by probability; then errors."""
+    def entry(name, verdict, p, band=1.0, status="ok"):
+        return {"name": name, "status": status, "verdict": verdict, "stiction_detected": verdict == "stiction",
+                "stiction_probability": p, "band_percent": band}
 
-    loops = [entry("err", False, None, None, "too_short"), entry("healthy", False, 0.5, 0.2),
-             entry("sim", True, 5.0, 1.0), entry("pred", True, -18.0, 13.0), entry("weak", True, 2.0, -1.0)]
-    assert [r["name"] for r in rank(loops)] == ["pred", "sim", "weak", "healthy", "err"]
+    loops = [entry("err", "inconclusive", None, None, "too_short"), entry("healthy", "no_stiction", 0.2),
+             entry("wide", "stiction", 0.6, 10.0), entry("likely", "stiction", 0.95, 2.0),
+             entry("gated", "inconclusive", 0.4), entry("narrow", "stiction", 0.9, 0.05)]
+    assert [r["name"] for r in rank(loops)] == ["wide", "likely", "narrow", "gated", "healthy", "err"]
 
 
 @pytest.mark.parametrize("on", ["process", "cluster"])

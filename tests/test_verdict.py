@@ -22,12 +22,9 @@ from jaxstiction.internal import (
     indicators,
     kstep_prediction,
     oscillation,
-    realistic_fleet,
     shape_index,
     stuck_share,
 )
-
-
 
 
 @pytest.fixture(scope="module")

@@ -63,10 +63,10 @@ from .._estimate.estimate import estimate
 from .._estimate.settings import SCREEN_ESTIMATE
 from .._filters import lfilter
 from .._loop import make_loop
-from .._verdict.gate import GATES, gate_reason
+from .._models import LoopModel, NoiseModel
+from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
 from .._verdict.verdict import verdict, VERDICTS
-from .._models import LoopModel, NoiseModel
 from .candidates import _arma11, _fit_sinusoid, _quantisation
 from .characteristic import rangeability_profile
 from .drift import drift_noise_model

@@ -34,8 +34,8 @@ from .._estimate.result import delay_note, held_out_note, KINDS, RESULTS
 from .._estimate.settings import Settings
 from .._loop import Loop, make_loop, stack
 from .._misc import json_number as _r, thread_map
+from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
-from .._verdict.gate import GATES, gate_reason
 from .._verdict.verdict import CAUSES, FEATURES, usable, verdict, VERDICTS
 from .settings import ScreenSettings
 

@@ -49,8 +49,15 @@ def write_screen_loop_figure(entry: dict, path) -> Path:
     ax_fit.legend(fontsize=8, loc="upper right")
     ax_fit.grid(alpha=0.3)
 
-    verdict = (("STICTION" if entry.get("slip_identified") else "STICTION (no slip seen: a deadband fits as well)")
-               if entry["stiction_detected"] else f"no stiction (cause: {entry.get('cause')})")
+    p = entry.get("stiction_probability")
+    prob = f"P {p:.2f}" if p is not None else "P –"
+    if entry["stiction_detected"]:
+        verdict = ("STICTION" if entry.get("slip_identified") else "STICTION (no slip seen: a deadband fits as well)")
+    elif entry.get("verdict") == "inconclusive":
+        verdict = f"inconclusive ({entry.get('gate')})"
+    else:
+        verdict = f"no stiction (cause: {entry.get('cause')})"
+    verdict = f"{verdict}, {prob}"
     band = entry.get("band_percent")
     ev = entry.get("evidence")
     fit_ = entry.get("fitness")

@@ -119,16 +119,20 @@ def _checked_loop(lp: Loop, name, settings):
 
 
 def rank(results: Iterable[dict]) -> list[dict]:
-    """Loops ranked by stiction evidence and severity: sticky loops first (largest
-    held-out gain of the Kano valve over a linear one, in simulation or in
-    short-horizon prediction, then widest band), then the other fitted loops by the
-    same evidence, then the loops that failed."""
+    """Loops ranked by how likely and how severe stiction is: sticky loops first, by
+    probability times band (a likely valve with a wide band is the worst; band in %
+    of OP, at least 0.1 so a tiny band cannot hide a likely valve), then the
+    inconclusive loops, then the loops without stiction, each by probability, then
+    the loops that could not be fitted."""
+    order = {"stiction": 0, "inconclusive": 1, "no_stiction": 2}
 
     def key(r):
         ok = r["status"] == "ok"
-        gains = [g for g in (r.get("evidence"), r.get("evidence_prediction")) if g is not None]
-        ev = max(gains) if gains else -1e9
-        return (not ok, not r["stiction_detected"], -ev, -(r.get("band_percent") or 0.0))
+        p = r.get("stiction_probability")
+        p = -1.0 if p is None else p
+        band = max(r.get("band_percent") or 0.0, 0.1)
+        severity = p * band if r.get("stiction_detected") else p
+        return (not ok, order.get(r.get("verdict"), 1), -severity)
 
     return sorted(results, key=key)
 

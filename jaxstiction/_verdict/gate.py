@@ -99,7 +99,8 @@ GATE_TEXT = {
     "saturated": "OP sits at its minimum or maximum on {saturated:.0%} of the record: the valve is against a stop",
     "compressed": ("one signal repeats its previous value on {compressed:.0%} of the other's moves: compressed or "
                    "coarsely quantised by the historian"),
-    "setpoint_moves": "setpoint moves carry {setpoint_share:.0%} of PV's variance: PV answers its setpoint",
+    "setpoint_moves": ("the setpoint's variance is {setpoint_share:.0%} of PV's: PV's movements answer setpoint "
+                       "moves"),
     "few_periods": "no oscillation with {min_periods:g} or more periods in the record",
 }
 

@@ -286,7 +286,8 @@ def indicators(op, pv, sp, mask) -> Indicators:
     e = control_error(pv, sp, mask)
     period, regularity, share = oscillation(e, w)
     ngi, nli = bicoherence(e, w)
-    dpv = jnp.concatenate([jnp.zeros((1,), pv.dtype), jnp.diff(pv)]) * jnp.concatenate([jnp.zeros((1,), w.dtype), w[1:] * w[:-1]])
+    pair = jnp.concatenate([jnp.zeros((1,), w.dtype), w[1:] * w[:-1]])
+    dpv = jnp.concatenate([jnp.zeros((1,), pv.dtype), jnp.diff(pv)]) * pair
     return Indicators(
         period=period, regularity=regularity, share=share, periods=_count(w) / period,
         horch=horch_phase(op, e, w, period), shape_op=shape_index(op, w, period), shape_pv=shape_index(pv, w, period),

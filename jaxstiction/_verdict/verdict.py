@@ -72,7 +72,7 @@ from .._filters import fitness, fitness_trend_free
 from .._loop import Loop
 from .calibration import CALIBRATION
 from .crossval import crossval_gain
-from .gate import GATES, gate_measures, GateMeasures, HARD
+from .gate import gate_measures, GateMeasures, GATES, HARD
 from .indicators import Indicators, indicators
 from .probability import Calibration
 from .settings import VerdictSettings
