@@ -3,4 +3,5 @@ import sys
 from ._cli import main
 
 
-sys.exit(main())
+if __name__ == "__main__":  # importing the module (as the docs build does) runs nothing
+    sys.exit(main())
