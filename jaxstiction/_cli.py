@@ -165,14 +165,14 @@ def cmd_fit(args):
 
 
 def screen_settings(args):
-    """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`)."""
+    """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`, `--chunk`)."""
     from ._estimate.settings import FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE
     from ._screen.settings import ScreenSettings
 
     estimate = FULL_SEARCH_ESTIMATE if args.full_search else SCREEN_ESTIMATE
     if args.max_delay is not None:
         estimate = estimate.with_max_delay(args.max_delay)
-    return ScreenSettings(estimate=estimate, threads=args.threads or 0)
+    return ScreenSettings(estimate=estimate, threads=args.threads or 0, chunk=getattr(args, "chunk", None) or 0)
 
 
 def cmd_screen(args):
@@ -347,6 +347,9 @@ def build_parser():
     s.add_argument("--threads", type=_whole, default=None, metavar="N",
                    help="batched fits running at once, each on one core (default: one per CPU core, at most 8; "
                         "memory grows with N)")
+    s.add_argument("--chunk", type=_whole, default=None, metavar="N",
+                   help="loops per batched call (default: sized to the machine: 2 on a CPU, up to 1024 on a GPU "
+                        "as its memory allows); the results do not depend on it")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")

@@ -114,7 +114,14 @@ from ._scenarios import (
     paper_experiment as paper_experiment,
 )
 from ._screen import causes as causes
-from ._screen.batch import bucket_length as bucket_length, chunk_size as chunk_size, run_chunk as run_chunk
+from ._screen.batch import (
+    auto_batch as auto_batch,
+    bucket_length as bucket_length,
+    chunk_size as chunk_size,
+    MAX_CHUNK as MAX_CHUNK,
+    run_chunk as run_chunk,
+    SCREEN_BYTES_PER_SAMPLE as SCREEN_BYTES_PER_SAMPLE,
+)
 from ._screen.causes import diagnose_causes as diagnose_causes
 from ._screen.screen import read_items as read_items
 from ._spline import (

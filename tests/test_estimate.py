@@ -303,7 +303,7 @@ def test_without_the_spline_family(no_spline, singles):
     (lambda: js.PhysicalSettings(max_band=0.0), "max_band"),
     (lambda: js.ScoreSettings(init_fraction=1.5), "init_fraction"),
     (lambda: js.ScoreSettings(init_count=True), "init_count"),
-    (lambda: js.ScreenSettings(chunk=0), "chunk"),
+    (lambda: js.ScreenSettings(chunk=-1), "chunk"),
     (lambda: js.VerdictSettings(prediction_horizon=0), "prediction_horizon"),
     (lambda: js.VerdictSettings(trend_degree=-1), "trend_degree"),
 ])

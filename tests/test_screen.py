@@ -52,11 +52,33 @@ def _corrupt(folder, good):
 def test_bucket_ladder():
     assert [bucket_length(n) for n in (1, 500, 501, 1400, 1500, 1625, 18000)] == [500, 500, 800, 1500, 1500,
                                                                                       2000, 22700]
-    four = js.ScreenSettings(chunk=4)
+    four = js.ScreenSettings(chunk=4, samples_per_call=8000)
     assert chunk_size(1500, four) == 4
     assert chunk_size(3000, four) == 2  # 8000 samples per call at most
     assert chunk_size(22700, four) == 1
-    assert chunk_size(1500, js.ScreenSettings()) == js.ScreenSettings().chunk
+    assert chunk_size(3000, js.ScreenSettings(chunk=64)) == 64  # a chunk given alone is used as it is
+
+
+def test_batches_sized_to_the_machine(monkeypatch):
+    """Automatic batches: today's small calls on a CPU; on an accelerator, as many
+    loops as a quarter of its memory holds, at most MAX_CHUNK."""
+    from jaxstiction.internal import auto_batch, MAX_CHUNK, SCREEN_BYTES_PER_SAMPLE
+
+    assert auto_batch(1500) == (2, 8000)  # the suite runs on a CPU
+    assert chunk_size(1500, js.ScreenSettings()) == 2 and chunk_size(22700, js.ScreenSettings()) == 1
+
+    class Device:
+        platform = "gpu"
+
+        def __init__(self, memory):
+            self.memory = memory
+
+        def memory_stats(self):
+            return {"bytes_limit": self.memory}
+
+    chunk, budget = auto_batch(1500, Device(4 * 256 * 1500 * SCREEN_BYTES_PER_SAMPLE))
+    assert chunk == 256 and budget == 256 * 1500
+    assert auto_batch(1500, Device(10**15))[0] == MAX_CHUNK and auto_batch(10**6, Device(10**9))[0] == 1
 
 
 def test_rank_by_probability_and_severity():

@@ -52,9 +52,42 @@ def bucket_length(n: int) -> int:
         k += 1
 
 
+# Bytes of device memory one loop-sample of the screen's batched estimate and verdict
+# holds at its peak (XLA's memory analysis of the compiled call on a CPU, 1500-sample
+# loops; see `auto_batch`).
+SCREEN_BYTES_PER_SAMPLE = 60_000
+CPU_CHUNK, CPU_SAMPLES_PER_CALL = 2, 8000
+MAX_CHUNK = 1024
+
+
+def auto_batch(length: int, device=None) -> tuple[int, int]:
+    """`(chunk, samples_per_call)` for a bucket of `length` samples on `device`
+    (default: the first local JAX device): on a CPU, `CPU_CHUNK` loops and
+    `CPU_SAMPLES_PER_CALL` samples; on an accelerator, as many loops as a quarter of
+    its memory holds at `SCREEN_BYTES_PER_SAMPLE` bytes per loop-sample (16 GB taken
+    when the device does not say), between 1 and `MAX_CHUNK`."""
+    device = device or jax.local_devices()[0]
+    if device.platform == "cpu":
+        return CPU_CHUNK, CPU_SAMPLES_PER_CALL
+    try:
+        memory = int((device.memory_stats() or {}).get("bytes_limit", 0)) or 16 * 2**30
+    except Exception:  # noqa: BLE001 - a backend without memory statistics
+        memory = 16 * 2**30
+    chunk = int(min(MAX_CHUNK, max(1, memory // 4 // (SCREEN_BYTES_PER_SAMPLE * max(length, 1)))))
+    return chunk, chunk * max(length, 1)
+
+
 def chunk_size(length: int, settings: ScreenSettings) -> int:
-    """Loops per batched call for a bucket of `length` samples."""
-    return max(1, min(settings.chunk, settings.samples_per_call // max(length, 1)))
+    """Loops per batched call for a bucket of `length` samples: `settings.chunk`
+    when it is given (cut by `samples_per_call` only when that is given too), else
+    `auto_batch`'s."""
+    chunk, budget = settings.chunk, settings.samples_per_call
+    if not chunk:
+        chunk, auto_budget = auto_batch(length)
+        budget = budget or auto_budget
+    if not budget:
+        return chunk
+    return max(1, min(chunk, budget // max(length, 1)))
 
 
 @eqx.filter_jit
