@@ -177,6 +177,7 @@ def report_real(title, sim, real, with_real):
 
 
 def reliability(check, cal):
+    check = [e for e in check if e["status"] == "ok"]
     p = np.array([float(cal.probability(np.array([e["features"][k] for k in FEATURES]))) for e in check])
     y = np.array([e["truth"]["sticky"] for e in check])
     print("\n  reliability on the check seeds (probability decile: mean predicted, observed sticky rate, loops)")
@@ -253,7 +254,7 @@ def write(cal, args):
         body = ", ".join(f"{float(x):.6g}" for x in np.asarray(v))
         return "np.array([\n" + textwrap.fill(body, 100, initial_indent=" " * 8, subsequent_indent=" " * 8) + "\n    ])"
 
-    names = textwrap.fill(", ".join(repr(k) for k in FEATURES), 100, initial_indent=" " * 8,
+    names = textwrap.fill(", ".join(json.dumps(k) for k in FEATURES), 100, initial_indent=" " * 8,
                           subsequent_indent=" " * 8)
 
     text = f'''"""The stiction probability's coefficients (a leaf: fitted numbers only).

@@ -4,11 +4,12 @@
     python benchmarks/fleet.py --small 8 --large 1024
     python benchmarks/fleet.py --json
     python benchmarks/fleet.py --threads 1         # one batched call at a time
+    python benchmarks/fleet.py --small 64 --large 1024 --chunk 256   # on a GPU
 
 Simulated 1500-sample loops (the paper's process; half with Kano stiction, half
 with a linear valve; half following a GBN setpoint, half a setpoint that rarely moves), screened
 exactly as `jaxstiction screen` does (`jaxstiction.screen_loops`: one length bucket,
-chunks of `ScreenSettings.chunk` loops per compiled call). A warm-up fleet of one
+chunks of loops per compiled call sized to the machine, or `--chunk`). A warm-up fleet of one
 chunk is screened first (it pays the compilation), then the small and the large
 fleet, both timed; the marginal seconds per loop are
 (t_large - t_small) / (large - small), so any fixed cost per call cancels. Also
@@ -29,7 +30,7 @@ import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxstiction import Experiment, Kano, make_loop, screen_loops, ScreenSettings, simulate_loop  # noqa: E402
-from jaxstiction.internal import nominal_model  # noqa: E402
+from jaxstiction.internal import chunk_size, nominal_model  # noqa: E402
 
 
 def fleet(count, offset=0, n=1500):
@@ -61,7 +62,7 @@ def marginal_cost(small=8, large=24, settings=ScreenSettings()) -> dict:
     """Screen a warm-up chunk (it compiles), then a fleet of `small` and one of
     `large` loops; the marginal seconds per loop, the balanced accuracy of
     `stiction_detected`, and the status of every loop that is not ok."""
-    t_warm, _, _ = timed(settings.chunk, 10 * (small + large), settings)  # compiles
+    t_warm, _, _ = timed(chunk_size(1500, settings), 10 * (small + large), settings)  # compiles
     t_small, r1, tr1 = timed(small, 0, settings)
     t_large, r2, tr2 = timed(large, small, settings)
     marginal = (t_large - t_small) / (large - small)
@@ -83,9 +84,11 @@ def main():
     p.add_argument("--large", type=int, default=24)
     p.add_argument("--threads", type=int, default=0,
                    help="batched calls at once (ScreenSettings.threads; 0: one per CPU core)")
+    p.add_argument("--chunk", type=int, default=0,
+                   help="loops per batched call (ScreenSettings.chunk; 0: sized to the machine)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    out = marginal_cost(args.small, args.large, ScreenSettings(threads=args.threads))
+    out = marginal_cost(args.small, args.large, ScreenSettings(threads=args.threads, chunk=args.chunk))
     if args.json:
         print(json.dumps(out))
         return
