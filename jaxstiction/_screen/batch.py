@@ -52,10 +52,11 @@ def bucket_length(n: int) -> int:
         k += 1
 
 
-# Bytes of device memory one loop-sample of the screen's batched estimate and verdict
-# holds at its peak (XLA's memory analysis of the compiled call on a CPU, 1500-sample
-# loops; see `auto_batch`).
-SCREEN_BYTES_PER_SAMPLE = 60_000
+# Bytes of device memory one loop-sample of the screen's batched estimate holds at its
+# peak (the verdict, a separate call, needs less): XLA's memory analysis of the
+# compiled call on a CPU, 1500-sample loops, 100 MB of temporaries for one loop and
+# 325 MB for four, so (325 - 100) / 3 / 1500 = 50 kB per loop-sample.
+SCREEN_BYTES_PER_SAMPLE = 50_000
 CPU_CHUNK, CPU_SAMPLES_PER_CALL = 2, 8000
 MAX_CHUNK = 1024
 
