@@ -46,7 +46,7 @@ def fleet(count, offset=0, n=1500):
         sp, switch = (20.0, 0.05) if (i // 2) % 2 == 0 else (5.0, 0.004)
         exp = Experiment(sp_amplitude=sp, sp_switch_prob=switch, nsr=0.05)
         rec = simulate_loop(nominal_model(chain=chain), exp, jr.PRNGKey(10_000 + i), n)
-        loops[f"loop{i:05d}"] = make_loop(np.asarray(rec.op), np.asarray(rec.pv))
+        loops[f"loop{i:05d}"] = make_loop(np.asarray(rec.op), np.asarray(rec.pv), sp=np.asarray(rec.sp))
         truth[f"loop{i:05d}"] = sticky
     return loops, truth
 

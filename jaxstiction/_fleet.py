@@ -8,8 +8,10 @@ record drawn at random:
 - the process: self-regulating (first or second order, time constants of 1–30
   samples) or integrating (a level: an integrator with a lag), dead times of 1–20
   samples;
-- the controller: SIMC-tuned PI, detuned or, for the `tight` confounder, tuned until
-  the loop is lightly damped (a complex pole pair of modulus 0.93–0.985);
+- the controller: SIMC-tuned PI, detuned, on three loops in ten with little integral
+  action (an integral time 3–20 times SIMC's, as many plant loops run), or, for the
+  `tight` confounder, tuned until the loop is lightly damped (a complex pole pair of
+  modulus 0.93–0.985);
 - the setpoint: constant, a few steps, a ramp, or a binary noise;
 - disturbances: coloured measurement noise, a slowly wandering load at the process
   input and load steps, a slow drift at the output;
@@ -22,7 +24,8 @@ The valve is one of five kinds: `stiction` (Kano, S 1–10 % of span, J/S 0.1–
 four confounders that are *not* sticky valves: `deadband` (Kano with J = 0), `linear`
 (a healthy valve, noise and loads only), `tight` (a healthy valve in a lightly damped
 loop) and `external` (a healthy valve with a sinusoidal or square disturbance of
-period 10–200 samples at the output).
+period 10–200 samples at the output, its phase wandering and its amplitude
+breathing a little).
 
 Everything is drawn from a NumPy generator seeded by the draw's seed, so a seed
 names one loop; the loops themselves run in one jitted, vmapped `lax.scan`.
@@ -148,6 +151,8 @@ def _draw(seed: int, kind: str | None):
         theta = delay + 1 + tau2
         lam = theta * rng.uniform(0.8, 3.0)
         kc, ti = tau / (gain * (lam + theta)), min(tau, 4.0 * (lam + theta))
+    if rng.random() < 0.3:  # a proportional-heavy PI, as many plant loops run: little integral action
+        ti *= rng.uniform(3.0, 20.0)
     kp, ratio = kc, 1.0 / max(ti, 1.0)
     for _ in range(80):  # stable; lightly damped for `tight`
         rho, osc = _poles(a, b, delay, kp, kp * ratio)
@@ -188,9 +193,14 @@ def _draw(seed: int, kind: str | None):
         for t0 in rng.integers(0, nn, rng.integers(1, 4)):
             load[t0:] += rng.uniform(-1.0, 1.0)
     if kind == "external":
+        # a periodic disturbance from elsewhere (another loop's cycle, a batch unit):
+        # its phase wanders and its amplitude breathes, as a real one's do
         amp, period = scale * rng.uniform(0.5, 6.0), rng.uniform(10.0, 200.0)
-        wave = np.sin(2 * np.pi * np.arange(nn) / period + rng.uniform(0, 2 * np.pi))
-        out += amp * (wave if rng.random() < 0.7 else np.sign(wave))
+        phase = 2 * np.pi * np.arange(nn) / period + rng.uniform(0, 2 * np.pi)
+        phase += np.cumsum(rng.normal(0.0, rng.uniform(0.0, 0.05), nn))
+        breath = 1.0 + rng.uniform(0.0, 0.3) * _ar1(rng, nn, 0.995)
+        wave = np.sin(phase)
+        out += amp * breath * (wave if rng.random() < 0.7 else np.sign(wave))
     if rng.random() < 0.1:
         out += np.cumsum(rng.standard_normal(nn)) * sigma * rng.uniform(0.02, 0.2)
     historian = []

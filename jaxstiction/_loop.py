@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -63,6 +64,20 @@ def make_loop(op, pv, ts=1.0, dtype=None, *, sp=None) -> Loop:
         if sp.shape != op.shape:
             raise ValueError(f"`sp` must have the shape of `op`, {op.shape}, got {sp.shape}")
     return Loop(op=op, pv=pv, mask=jnp.ones(op.shape, dtype), ts=jnp.asarray(float(ts), dtype), sp=sp)
+
+
+def bucket_length(n: int) -> int:
+    """The padded length of a screen bucket holding `n`-sample loops: the first of
+    500, 800, 1000, 1500, 2000, 2900, 4000, … (500 × √2^k rounded up to 100) that is
+    at least `n`. The verdict's spectral indicators read a periodogram on the padded
+    record's grid, so a loop judged alone is padded to its bucket too (as `diagnose`
+    does), to get the screen's verdict."""
+    k = 0
+    while True:
+        b = int(math.ceil(500 * 2 ** (k / 2) / 100) * 100)
+        if b >= n:
+            return b
+        k += 1
 
 
 def pad(loop: Loop, length: int) -> Loop:

@@ -93,6 +93,7 @@ from ._estimate.settings import FULL_SEARCH_ESTIMATE as FULL_SEARCH_ESTIMATE, SC
 from ._filters import lagged as lagged, steady_state as steady_state
 from ._fleet import FleetLoop as FleetLoop, KINDS as FLEET_KINDS, realistic_fleet as realistic_fleet
 from ._linalg import is_stable as is_stable, lstsq as lstsq
+from ._loop import bucket_length as bucket_length
 from ._misc import (
     chunked_vmap as chunked_vmap,
     default_threads as default_threads,
@@ -116,7 +117,6 @@ from ._scenarios import (
 from ._screen import causes as causes
 from ._screen.batch import (
     auto_batch as auto_batch,
-    bucket_length as bucket_length,
     chunk_size as chunk_size,
     MAX_CHUNK as MAX_CHUNK,
     run_chunk as run_chunk,

@@ -62,7 +62,7 @@ from .._blocks import EqualPercentage, Sinusoid
 from .._estimate.estimate import estimate
 from .._estimate.settings import SCREEN_ESTIMATE
 from .._filters import lfilter
-from .._loop import make_loop
+from .._loop import bucket_length, make_loop, pad
 from .._models import LoopModel, NoiseModel
 from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
@@ -228,11 +228,11 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
 
 def _stiction_verdict(loop, b: _Baseline) -> dict:
     """The screen's stiction verdict of the loop (its light `estimate` and
-    [`jaxstiction.verdict`][], the setpoint included when recorded), as plain
-    values."""
+    [`jaxstiction.verdict`][] on the record padded to its screen bucket, the
+    setpoint included when recorded), as plain values."""
     real = np.asarray(loop.mask) > 0
     sp = None if loop.sp is None else np.asarray(loop.sp)[real]
-    lp = make_loop(b.op, b.pv, float(np.asarray(loop.ts)), sp=sp)
+    lp = pad(make_loop(b.op, b.pv, float(np.asarray(loop.ts)), sp=sp), bucket_length(b.op.shape[0]))
     fit = estimate(dataclasses.replace(lp, sp=None), SCREEN_ESTIMATE)
     v = verdict(fit, lp)
     code = int(v.gate)

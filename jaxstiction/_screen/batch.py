@@ -32,24 +32,12 @@ from .._estimate.estimate import estimate
 from .._estimate.report import report
 from .._estimate.result import delay_note, held_out_note, KINDS, RESULTS
 from .._estimate.settings import Settings
-from .._loop import Loop, make_loop, stack
+from .._loop import bucket_length, Loop, make_loop, stack
 from .._misc import json_number as _r, thread_map
 from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
 from .._verdict.verdict import CAUSES, FEATURES, usable, verdict, VERDICTS
 from .settings import ScreenSettings
-
-
-def bucket_length(n: int) -> int:
-    """The padded length of a bucket holding `n`-sample loops: the first of 500,
-    800, 1000, 1500, 2000, 2900, 4000, … (500 × √2^k rounded up to 100) that is
-    at least `n`."""
-    k = 0
-    while True:
-        b = int(math.ceil(500 * 2 ** (k / 2) / 100) * 100)
-        if b >= n:
-            return b
-        k += 1
 
 
 # Bytes of device memory one loop-sample of the screen's batched estimate holds at its
