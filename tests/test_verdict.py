@@ -152,7 +152,7 @@ def test_gate_names_each_reason(records):
     """Each reason on a record made to show it; a clean limit cycle passes."""
     op, pv = records["sticky"]
     assert _gate_of(op, pv) == "ok"
-    assert _gate_of(op, np.full_like(pv, 3.5e-44)) == "frozen_sensor"
+    assert _gate_of(op, np.full_like(pv, 3.5)) == "frozen_sensor"
     assert _gate_of(np.clip(op, None, np.quantile(op, 0.6)), pv) == "saturated"
     step = np.round(pv / 2.0) * 2.0  # a historian's coarse steps: flat runs, then jumps
     held = pv.copy()
@@ -221,3 +221,34 @@ def test_probability_gradient_matches_finite_differences():
     fd = [(CALIBRATION.probability(x.at[i].add(h)) - CALIBRATION.probability(x.at[i].add(-h))) / (2 * h)
           for i in range(x.shape[0])]
     np.testing.assert_allclose(np.asarray(g), np.asarray(fd), rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_screen_says_inconclusive_with_the_reason(records):
+    """End to end through the screen: a record made to show each gate's reason gets
+    `inconclusive` with that reason named (a frozen sensor before any fit); a clean
+    limit cycle passes the gate. One length bucket, so one compilation."""
+    op, pv = records["sticky"]
+    t = np.arange(op.size)
+    held = pv.copy()
+    for i in range(1, len(held)):  # a historian's deadband compression
+        held[i] = held[i - 1] if abs(pv[i] - held[i - 1]) < 1.5 else pv[i]
+    loops = {
+        "clean": js.make_loop(op, pv),
+        "frozen": js.make_loop(op, np.full_like(pv, 3.5)),
+        "saturated": js.make_loop(np.clip(op, None, np.quantile(op, 0.6)), pv),
+        "compressed": js.make_loop(op, held),
+        "setpoint": js.make_loop(op, pv + 20 * (t > 600), sp=10 + 20 * (t > 600)),
+    }
+    out = {e["name"]: e for e in js.screen_loops(loops, js.ScreenSettings(chunk=2))}
+    assert out["clean"]["gate"] == "ok" and out["clean"]["reason"] == ""
+    assert out["frozen"]["verdict"] == "inconclusive" and out["frozen"]["gate"] == "frozen_sensor"
+    assert "frozen sensor" in out["frozen"]["reason"] and out["frozen"]["stiction_detected"] is False
+    for name in ("saturated", "compressed"):
+        assert out[name]["verdict"] == "inconclusive" and out[name]["gate"] == name and out[name]["reason"]
+        assert out[name]["stiction_detected"] is False
+    e = out["setpoint"]
+    assert e["gate"] == "setpoint_moves"
+    assert e["verdict"] == ("stiction" if e["stiction_probability"] >= 0.5 else "inconclusive")
+    for e in out.values():
+        assert "\n" not in e.get("reason", "")
