@@ -41,16 +41,21 @@ def main():
             loops[f"{case}/{seed}"] = js.make_loop(np.asarray(rec.op), np.asarray(rec.pv), 1.0, sp=np.asarray(rec.sp))
     entries = {e["name"]: e for e in js.screen_loops(loops, js.ScreenSettings(threads=args.threads))}
     print(f"P0-P10, seeds {seeds_text(args.seeds)}: verdicts (stiction / no_stiction / inconclusive), "
-          "median probability")
+          "median probability, the model-based test alone (model_wins), gates")
     calls = []
     for case in CASES:
         mine = [entries[f"{case}/{s}"] for s in args.seeds]
         counts = [sum(e.get("verdict") == v for e in mine) for v in ("stiction", "no_stiction", "inconclusive")]
         probs = [e["stiction_probability"] for e in mine if e.get("stiction_probability") is not None]
         gates = sorted({e.get("gate") for e in mine if e.get("verdict") == "inconclusive"})
+        wins = sum(bool(e.get("model_wins")) for e in mine)
         print(f"  {case:4s} {'sticky' if case in STICKY else '':6s} {counts[0]:3d} / {counts[1]:3d} / {counts[2]:3d}   "
-              f"P {np.median(probs) if probs else float('nan'):.2f}   {', '.join(gates)}")
+              f"P {np.median(probs) if probs else float('nan'):.2f}   model {wins:3d}   {', '.join(gates)}")
         calls += [(bool(e["stiction_detected"]), case in STICKY) for e in mine]
+    model = [(bool(e.get("model_wins")), e["name"].split("/")[0] in STICKY) for e in entries.values()]
+    pos = [c for c, t in model if t]
+    neg = [not c for c, t in model if not t]
+    print(f"the model-based test alone: balanced accuracy {0.5 * (np.mean(pos) + np.mean(neg)):.3f}")
     pos = [c for c, t in calls if t]
     neg = [not c for c, t in calls if not t]
     print(f"balanced accuracy {0.5 * (np.mean(pos) + np.mean(neg)):.3f} (sticky {sum(pos)}/{len(pos)}, "
