@@ -158,3 +158,20 @@ from ._verdict.verdict import (
     usable as usable,
     VERDICTS as VERDICTS,
 )
+from ._whatif.closedloop import (
+    closed_loop as closed_loop,
+    ClosedLoopRun as ClosedLoopRun,
+    count_reversals as count_reversals,
+    loop_stats as loop_stats,
+    settling_time as settling_time,
+    SmoothKano as SmoothKano,
+)
+from ._whatif.compensate import (
+    design_knocker as design_knocker,
+    grid_knockers as grid_knockers,
+    smooth_objective as smooth_objective,
+)
+from ._whatif.replay import initial_and_sync as initial_and_sync, Replay as Replay, replay as replay
+from ._whatif.report import compensation_json as compensation_json, whatif_json as whatif_json
+from ._whatif.uncertainty import draw_models as draw_models, process_factor as process_factor
+from ._whatif.whatif import chi2_quantile as chi2_quantile, whatif_model as whatif_model
