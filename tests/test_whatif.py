@@ -29,8 +29,8 @@ from jaxstiction.internal import (
     count_reversals,
     initial_and_sync,
     nominal_model,
-    SmoothKano,
     smooth_objective,
+    SmoothKano,
     whatif_json,
     whatif_model,
 )
