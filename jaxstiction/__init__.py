@@ -82,6 +82,7 @@ from ._whatif.settings import (
     KnockerGrid as KnockerGrid,
     WhatIfSettings as WhatIfSettings,
 )
+from ._whatif.trend import valve_trend as valve_trend
 from ._whatif.whatif import compensate as compensate, WhatIf as WhatIf, whatif as whatif
 
 
