@@ -91,7 +91,13 @@ from ._estimate.relax import (
 from ._estimate.result import delay_note as delay_note, held_out_note as held_out_note
 from ._estimate.settings import FULL_SEARCH_ESTIMATE as FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE as SCREEN_ESTIMATE
 from ._filters import lagged as lagged, steady_state as steady_state
-from ._fleet import FleetLoop as FleetLoop, KINDS as FLEET_KINDS, realistic_fleet as realistic_fleet
+from ._fleet import (
+    _draw as fleet_draw,
+    FleetLoop as FleetLoop,
+    KINDS as FLEET_KINDS,
+    realistic_fleet as realistic_fleet,
+    RUN_IN as FLEET_RUN_IN,
+)
 from ._linalg import is_stable as is_stable, lstsq as lstsq
 from ._misc import (
     chunked_vmap as chunked_vmap,
