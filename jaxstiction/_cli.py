@@ -147,6 +147,9 @@ def cmd_fit(args):
 
     if not 0.0 <= args.validate < 1.0:  # bad options fail before the record is read
         raise ValueError(f"`--validate` must be a fraction in [0, 1), got {args.validate:g}")
+    if args.pi and not args.whatif:
+        raise ValueError("`--pi` gives the controller of the what-if: it needs --whatif")
+    _pi(args)
     loop = decimate(read_loop(args.file, ts=args.ts, name=args.name), args.decimate)
     name = args.name if args.name is not None else loop_name(args.file)
     op, pv, ts = np.asarray(loop.op), np.asarray(loop.pv), float(loop.ts)
@@ -169,18 +172,29 @@ def cmd_fit(args):
     return 0
 
 
-def _controller(args, ts: float):
-    """The controller `--pi GAIN,TI` gives, or `None` (identify it)."""
+def _pi(args):
+    """`--pi GAIN,TI` as `(gain, integral time)`, checked before any record is read;
+    `None` without it (the controller is identified)."""
     if not getattr(args, "pi", None):
         return None
-    from ._whatif.controller import Controller
-
     try:
         gain, ti = (float(v) for v in args.pi.split(","))
     except ValueError:
         raise ValueError(f"`--pi` must be GAIN,INTEGRAL_TIME (two numbers, the integral time in seconds), "
                          f"got {args.pi!r}") from None
-    return Controller.pi(gain, ti, ts)
+    if not (ti > 0 and gain != 0 and math.isfinite(gain) and math.isfinite(ti)):
+        raise ValueError(f"`--pi` needs a finite non-zero gain and an integral time > 0 s, got {args.pi!r}")
+    return gain, ti
+
+
+def _controller(args, ts: float):
+    """The controller `--pi GAIN,TI` gives, or `None` (identify it)."""
+    pi = _pi(args)
+    if pi is None:
+        return None
+    from ._whatif.controller import Controller
+
+    return Controller.pi(pi[0], pi[1], ts)
 
 
 def _whatif_of(args, fit, loop, name: str) -> dict:
@@ -386,6 +400,7 @@ def cmd_compensate(args):
     from ._whatif.whatif import compensate
 
     settings = CompensateSettings(method=args.method, travel_weight=args.travel_weight)  # bad options fail first
+    _pi(args)
     loop = decimate(read_loop(args.file, ts=args.ts, name=args.name), args.decimate)
     name = args.name if args.name is not None else loop_name(args.file)
     ts = float(loop.ts)

@@ -96,6 +96,30 @@ def _natural(s: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
+def band_changes(rows: list[dict]) -> tuple[str, str]:
+    """Flag, in place, each recording whose band of S `grows` (the lower end of its
+    interval above the upper end of the first usable recording's) or `shrinks` (the
+    mirror case); return the valve's `change` at its last usable recording
+    (`grows`, `shrinks`, `steady`, or `single` with fewer than two usable
+    recordings) and a note. `rows` are in time order, each with `S_interval`
+    (`None` when not fitted)."""
+    usable = [r for r in rows if r.get("S_interval") is not None and None not in r["S_interval"]]
+    for r in rows:
+        r["grows"] = r["shrinks"] = False
+    if len(usable) < 2:
+        return "single", "fewer than two usable recordings: no trend"
+    lo0, hi0 = usable[0]["S_interval"]
+    for r in usable[1:]:
+        r["grows"] = r["S_interval"][0] > hi0
+        r["shrinks"] = r["S_interval"][1] < lo0
+    last = usable[-1]
+    change = "grows" if last["grows"] else "shrinks" if last["shrinks"] else "steady"
+    note = ""
+    if change == "steady" and any(r["grows"] for r in usable):
+        note = "the band grew beyond its first interval in between, and is back within it at the last recording"
+    return change, note
+
+
 def valve_trend(paths, *, mapping: Mapping[str, str] | None = None, ts: float | None = None,
                 recursive: bool = False, settings: Settings = FULL_SEARCH_ESTIMATE,
                 progress: Callable[[str], object] | None = None) -> dict:
@@ -147,20 +171,7 @@ def valve_trend(paths, *, mapping: Mapping[str, str] | None = None, ts: float | 
             if progress is not None:
                 progress(f"{tag}: {name}: S = {row['S']}, J = {row['J']} ({row['status']})")
             rows.append(row)
-        usable = [r for r in rows if r["S_interval"] is not None and None not in r["S_interval"]]
-        note = ""
-        if len(usable) >= 2:
-            lo0, hi0 = usable[0]["S_interval"]
-            for r in usable[1:]:
-                r["grows"] = r["S_interval"][0] > hi0
-                r["shrinks"] = r["S_interval"][1] < lo0
-            last = usable[-1]
-            change = "grows" if last["grows"] else "shrinks" if last["shrinks"] else "steady"
-            if change == "steady" and any(r["grows"] for r in usable):
-                note = "the band grew beyond its first interval in between, and is back within it at the last recording"
-        else:
-            change = "single"
-            note = "fewer than two usable recordings: no trend"
+        change, note = band_changes(rows)
         valves.append({"tag": tag, "recordings": rows, "change": change, "note": note})
     return {"valves": valves, "recordings": sum(len(v["recordings"]) for v in valves)}
 
