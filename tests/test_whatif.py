@@ -258,6 +258,25 @@ def test_no_setpoint_is_a_constant_setpoint():
     assert js["error_std_repaired_interval"] is not None  # NaN intervals of S and J: S and J are kept
 
 
+def test_a_slow_repaired_loop_is_read_on_the_last_samples():
+    """A repaired loop that settles for longer than the record leaves is read on the
+    record's last `min_samples` samples after the valve's start, and says so; with
+    a `min_samples` beyond what the valve's start leaves, the numbers are null."""
+    plant, loop, _, _ = _plant_loop(9)
+    slow = Controller(kp=jnp.asarray(0.01), ki=jnp.asarray(0.0005))  # does not settle within the record
+    w = whatif_model(plant, loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan), SMALL, controller=slow)
+    assert int(w.sync) + int(w.settle) > N - SMALL.min_samples and not bool(w.settled)
+    assert int(w.start) == max(int(w.sync), N - SMALL.min_samples) and bool(w.enough)
+    js = whatif_json(jax.tree.map(np.asarray, w), 2.0, SMALL)
+    assert js["error_std_repaired"] is not None and "repaired loop settles in" in js["note"]
+    assert js["window"]["settled"] is False
+    strict = WhatIfSettings(draws=3, min_samples=N + 1, compensate=SMALL.compensate)
+    w = whatif_model(plant, loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan), strict, controller=slow)
+    js = whatif_json(jax.tree.map(np.asarray, w), 2.0, strict)
+    assert not bool(w.enough) and js["error_std_repaired"] is None and js["benefit"] is None
+    assert "too few to read the numbers on" in js["note"]
+
+
 def test_knocker_gradient_matches_finite_differences():
     plant, loop, sp, v = _plant_loop(7)
     sm = eqx.tree_at(lambda m: m.chain[0], plant, SmoothKano(4.0, 1.5, 0.2))

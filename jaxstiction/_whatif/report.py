@@ -69,6 +69,11 @@ def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> di
         notes.append(f"only {int(np.asarray(w.samples))} samples are left after the valve's unknown start (sample "
                      f"{int(np.asarray(w.sync))}) and the repaired loop's settling ({int(np.asarray(w.settle))} "
                      f"samples): fewer than {settings.min_samples}, too few to read the numbers on")
+    elif not bool(np.asarray(w.settled)):
+        notes.append(f"the repaired loop settles in {int(np.asarray(w.settle))} samples, longer than the record "
+                     f"leaves after the valve's unknown start (sample {int(np.asarray(w.sync))}): the numbers are "
+                     f"read on the last {int(np.asarray(w.samples))} samples, where the repaired run may still "
+                     "carry some of its start")
     fit = _f(w.controller.fit)
     if int(np.asarray(w.controller.source)) != 2 and not fit >= settings.min_controller_fit:
         notes.append(f"the identified controller explains {100 * fit:.0f} % of OP's moves (a historian may have "
@@ -132,7 +137,8 @@ def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> di
         "oscillation": {s: {"amplitude": num(stats[s]["amplitude"]), "period_samples": num(stats[s]["period"], 1),
                             "period_s": num(stats[s]["period"] * ts, 1)} for s in SCENARIOS},
         "window": {"start": int(np.asarray(w.start)), "samples": int(np.asarray(w.samples)),
-                   "sync": int(np.asarray(w.sync)), "settle": int(np.asarray(w.settle))},
+                   "sync": int(np.asarray(w.sync)), "settle": int(np.asarray(w.settle)),
+                   "settled": bool(np.asarray(w.settled))},
         "S": _r(w.S), "J": _r(w.J),
         "note": "; ".join(notes),
     }

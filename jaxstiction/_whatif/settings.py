@@ -93,8 +93,11 @@ class WhatIfSettings(eqx.Module):
     - `min_controller_fit`: below this share of ΔOP explained, the identified
       controller gets a note (a historian may have compressed PV, or the
       controller is not a PI).
-    - `min_samples`: fewest samples left to read the numbers from (after the valve's
-      unknown start and the repaired loop's settling, see [`jaxstiction.WhatIf`][]).
+    - `min_samples`: fewest samples to read the numbers from: when the valve's
+      unknown start and the repaired loop's settling leave fewer, the last
+      `min_samples` samples after the valve's start are read (and the `whatif` note
+      says so); when the valve's start alone leaves fewer, the numbers are null
+      (see [`jaxstiction.WhatIf`][]).
     - `compensate`: [`jaxstiction.CompensateSettings`][] of the knocker design.
     - `seed`: of the draws.
     """

@@ -59,8 +59,11 @@ class WhatIf(eqx.Module):
       `has_setpoint`; `stable`: the three fitted-loop runs stayed bounded;
     - `start`: the first sample the numbers are read from, `sync` (the valve's path
       no longer depends on its unknown initial state, see `replay`) plus `settle`
-      (the repaired loop's settling time, `settling_time`); `samples`: how many real
-      samples that leaves; `enough`: stable, with at least `min_samples` of them;
+      (the repaired loop's settling time, `settling_time`), or, when that leaves
+      fewer than `min_samples`, the last `min_samples` samples (never before
+      `sync`; `settled` is then false: the repaired run may still carry some of its
+      start); `samples`: how many real samples that leaves; `enough`: stable, with
+      at least `min_samples` of them;
     - `op_*`, `pv_*`, `valve_*` (`as_is`, `repaired`, `compensated`): the runs.
     """
 
@@ -85,6 +88,7 @@ class WhatIf(eqx.Module):
     start: Array
     sync: Array
     settle: Array
+    settled: Bool[Array, ""]
     samples: Array
     enough: Bool[Array, ""]
     op_as_is: Float[Array, " time"]
@@ -143,7 +147,7 @@ def _stack(*trees):
 
 
 def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_count: int,
-             threshold: float) -> _Prepared:
+             threshold: float, min_samples: int = 0) -> _Prepared:
     dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
     op, pv = jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype)
     mask = (jnp.asarray(loop.mask) > 0).astype(dtype)
@@ -156,7 +160,12 @@ def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_c
     # repaired loop has forgotten how it started (see `replay`)
     n = op.shape[0]
     settle = settling_time(repaired_model, controller, op[0], n)
-    start = jnp.minimum(rp.sync + settle, n)
+    # a slow repaired loop (an integrating process, a detuned PI) may settle for
+    # longer than the record leaves: then the last `min_samples` valid samples are
+    # read (never before `sync`), and `settled` is false
+    last = jnp.max(jnp.where(mask > 0, jnp.arange(n) + 1, 0))
+    start = jnp.minimum(rp.sync + settle, jnp.maximum(rp.sync, last - min_samples))
+    start = jnp.minimum(start, n)
     window = mask * (jnp.arange(n) >= start)
     none = _no_knock(dtype)
     runs = _runs3(_stack(model, repaired_model), controller, rp, _stack(none, none))
@@ -215,7 +224,7 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
     fit's `physical` model."""
     _check_model(model, loop)
     threshold = settings.reversal_threshold
-    p = _prepare(model, loop, controller, settings.init_count, threshold)
+    p = _prepare(model, loop, controller, settings.init_count, threshold, settings.min_samples)
     rp, mask, window, ts, model, ctrl = p.replay, p.mask, p.window, p.ts, p.model, p.controller
     dtype = mask.dtype
     design = design_knocker(model, ctrl, rp, window, ts, p.as_is_stats, settings.compensate, threshold)
@@ -282,7 +291,8 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
         as_is_interval=ivs[0], repaired_interval=ivs[1], compensated_interval=ivs[2],
         benefit=p.as_is_stats.error_std - p.repaired_stats.error_std, benefit_interval=benefit_iv,
         pv_range=pv_range, S=model.chain[0].S, J=model.chain[0].J, draws_used=used, has_setpoint=has_sp,
-        stable=stable, start=p.start, sync=rp.sync, settle=p.settle, samples=samples.astype(jnp.int32),
+        stable=stable, start=p.start, sync=rp.sync, settle=p.settle,
+        settled=p.start >= rp.sync + p.settle, samples=samples.astype(jnp.int32),
         enough=enough,
         op_as_is=p.as_is.op, op_repaired=p.repaired.op, op_compensated=comp_run.op_valve,
         pv_as_is=p.as_is.pv, pv_repaired=p.repaired.pv, pv_compensated=comp_run.pv,
@@ -292,7 +302,7 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
 
 def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = CompensateSettings(), *,
                 controller: Controller | None = None, init_count: int = 8,
-                reversal_threshold: float = 0.1) -> Compensation:
+                reversal_threshold: float = 0.1, min_samples: int = 200) -> Compensation:
     r"""Design a knocker for one loop on its identified closed loop (see
     `jaxstiction._whatif.compensate`).
 
@@ -308,7 +318,7 @@ def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = Compens
     **Raises:** `ValueError` as [`jaxstiction.whatif`][].
     """
     _check(fit, loop)
-    p = _prepare(fit.physical, loop, controller, init_count, reversal_threshold)
+    p = _prepare(fit.physical, loop, controller, init_count, reversal_threshold, min_samples)
     d = design_knocker(p.model, p.controller, p.replay, p.window, p.ts, p.as_is_stats, settings, reversal_threshold)
     a, r, c = p.as_is_stats, p.repaired_stats, d.compensated
     removable = a.error_std - r.error_std
