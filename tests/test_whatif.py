@@ -247,6 +247,42 @@ def test_whatif_vmap_equals_single_calls():
         assert int(got.start) == int(one.start)
 
 
+@pytest.mark.slow
+def test_whatif_jit_equals_no_jit():
+    from jaxstiction._whatif.whatif import _whatif_model
+
+    plant, loop, _, _ = _plant_loop(10)
+    args = (plant, loop, jnp.asarray([3.8, 4.2]), jnp.asarray([1.3, 1.7]), SMALL)
+    jitted = whatif_model(*args)
+    eager = _whatif_model(*args)  # op by op (each scan compiles its own body)
+    for name in ("as_is", "repaired", "compensated", "repaired_interval"):
+        assert eqx.tree_equal(getattr(jitted, name), getattr(eager, name), rtol=1e-8, atol=1e-8), name
+    assert int(jitted.start) == int(eager.start)
+    assert eqx.tree_equal(jitted.knocker, eager.knocker, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_compensate_vmap_equals_single_calls():
+    from jaxstiction import compensate, estimate, Settings
+
+    settings = CompensateSettings(grid=SMALL.compensate.grid)
+    fits, loops = [], []
+    for seed in (11, 12):
+        _, loop, _, _ = _plant_loop(seed)
+        fits.append(estimate(make_loop(loop.op, loop.pv, loop.ts), Settings(use_spline=False)))
+        loops.append(loop)
+    batch = stack(loops)
+    batched = eqx.filter_vmap(lambda f, lp: compensate(f, lp, settings))(
+        jax.tree.map(lambda *t: jnp.stack(t), *fits), batch)
+    for i in range(2):
+        one = compensate(fits[i], loops[i], settings)
+        got = jax.tree.map(lambda t: t[i], batched)
+        for name in ("error_std_as_is", "error_std_compensated", "error_std_repaired", "travel_compensated"):
+            np.testing.assert_allclose(float(getattr(got, name)), float(getattr(one, name)), rtol=1e-8)
+        assert eqx.tree_equal(got.knocker, one.knocker, rtol=1e-10, atol=1e-10)
+        assert float(one.error_std_compensated) <= float(one.error_std_as_is)
+
+
 def test_no_setpoint_is_a_constant_setpoint():
     plant, loop, _, _ = _plant_loop(6, steps=False, sp_recorded=False)
     w = whatif_model(plant, loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan), SMALL)

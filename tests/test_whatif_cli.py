@@ -102,6 +102,7 @@ def _row(lo, hi):
     ([(2.0, 2.2), (1.0, 1.2)], "shrinks", [False, False]),
     ([(1.0, 1.2), (None, None)], "single", [False, False]),
     ([(None, None), (1.0, 1.2), (1.3, 1.4)], "grows", [False, False, True]),
+    ([(1.0, 1.2), (1.5, 1.7), (0.1, 0.2)], "inconsistent", [False, True, False]),
 ])
 def test_band_changes(intervals, change, flags):
     rows = [_row(*iv) for iv in intervals]
@@ -109,8 +110,10 @@ def test_band_changes(intervals, change, flags):
     assert got == change
     assert [r["grows"] for r in rows] == flags
     assert ("in between" in note) == (change == "steady" and any(flags))
-    if change == "shrinks":
+    if change in ("shrinks", "inconsistent"):
         assert rows[-1]["shrinks"]
+    if change == "inconsistent":
+        assert "understate" in note
 
 
 def test_tags_of_recordings(tmp_path):

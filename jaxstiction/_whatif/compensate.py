@@ -17,7 +17,7 @@ knocker's price; $w$ = `CompensateSettings.travel_weight`). Two ways:
   a smoothed Kano valve (`SmoothKano`), from a few periods of the grid, each result
   then scored with the exact valve.
 
-`benchmarks/whatif.py` measures both (README, *What fixing the valve would buy*).
+`benchmarks/whatif.py` measures both (the method page *What fixing the valve would buy*).
 """
 
 from __future__ import annotations

@@ -12,7 +12,9 @@ gives S and J with 95 % profile-likelihood intervals.
 A valve's band **grows** at a recording when the lower end of that recording's
 interval of S lies above the upper end of the interval of the valve's first usable
 recording: the change is larger than either fit's uncertainty. It **shrinks** in the
-mirror case (a repair, or a retuned positioner).
+mirror case (a repair, or a retuned positioner). When recordings lie both above and
+below it, the change is `inconsistent`: the per-record intervals are then too narrow
+to carry a trend.
 """
 
 from __future__ import annotations
@@ -101,7 +103,8 @@ def band_changes(rows: list[dict]) -> tuple[str, str]:
     interval above the upper end of the first usable recording's) or `shrinks` (the
     mirror case); return the valve's `change` at its last usable recording
     (`grows`, `shrinks`, `steady`, or `single` with fewer than two usable
-    recordings) and a note. `rows` are in time order, each with `S_interval`
+    recordings; `inconsistent` when some recordings lie above the first one's
+    interval and others below it) and a note. `rows` are in time order, each with `S_interval`
     (`None` when not fitted)."""
     usable = [r for r in rows if r.get("S_interval") is not None and None not in r["S_interval"]]
     for r in rows:
@@ -112,6 +115,10 @@ def band_changes(rows: list[dict]) -> tuple[str, str]:
     for r in usable[1:]:
         r["grows"] = r["S_interval"][0] > hi0
         r["shrinks"] = r["S_interval"][1] < lo0
+    if any(r["grows"] for r in usable) and any(r["shrinks"] for r in usable):
+        return "inconsistent", ("the band moves both up and down beyond its intervals between recordings: the "
+                                "intervals (of each record's own fit) understate how much S varies from record "
+                                "to record, so no trend is claimed")
     last = usable[-1]
     change = "grows" if last["grows"] else "shrinks" if last["shrinks"] else "steady"
     note = ""
@@ -132,8 +139,8 @@ def valve_trend(paths, *, mapping: Mapping[str, str] | None = None, ts: float | 
 
     **Returns:** `{"valves": [...], "recordings": n}`: per tag, its `recordings` (name,
     file, `S`, `J`, `S_interval`, `J_interval`, `fitness`, `status`, `grows`,
-    `shrinks`), `change` (`grows`, `shrinks`, `steady`, or `single` with one usable
-    recording) and a `note`. Only tags with two or more recordings are trends; the
+    `shrinks`), `change` (`grows`, `shrinks`, `steady`, `inconsistent`, or `single`
+    with one usable recording) and a `note`. Only tags with two or more recordings are trends; the
     others are listed too.
 
     **Raises:** `ValueError` when a path does not exist or holds no loop files."""
