@@ -5,7 +5,7 @@ setpoint.
 
     python benchmarks/whatif.py --set concealed --seeds 0-23 --estimator full   # (a), (c)
     python benchmarks/whatif.py --set concealed --seeds 0-23                    # the screen's fits
-    python benchmarks/whatif.py --set fleet --seeds 0-49                        # (b): ranking, 50 loops
+    python benchmarks/whatif.py --set fleet --seeds 0-49 --pad --no-oracle      # (b): ranking, 50 loops
     python benchmarks/whatif.py --set concealed --seeds 0-7 --design both       # grid against gradient
     python benchmarks/whatif.py ... --json
 
@@ -61,10 +61,12 @@ from jaxstiction import (  # noqa: E402
     WhatIfSettings,
 )
 from jaxstiction.internal import (  # noqa: E402
+    bucket_length,
     closed_loop,
     fleet_draw,
     FLEET_RUN_IN,
     nominal_model,
+    pad,
     realistic_fleet,
     SCREEN_ESTIMATE,
     whatif_model,
@@ -209,11 +211,14 @@ def spearman(x, y):
     return float(np.corrcoef(rx, ry)[0, 1])
 
 
-def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, designs=("grid",)):
+def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, designs=("grid",), padded=False):
     op, pv, sp, ts = case.record()
-    loop = make_loop(op, pv, ts, sp=sp)
+    loop, bare = make_loop(op, pv, ts, sp=sp), make_loop(op, pv, ts)
+    if padded:  # as the screen does: one compiled program per length bucket
+        length = bucket_length(len(op))
+        loop, bare = pad(loop, length), pad(bare, length)
     t0 = time.perf_counter()
-    fit = estimate(make_loop(op, pv, ts), settings)
+    fit = estimate(bare, settings)
     jax.block_until_ready(fit.S)
     t1 = time.perf_counter()
     out = dict(seed=case.seed, kind=case.kind, S=case.S, J=case.J, S_fit=float(fit.S), J_fit=float(fit.J),
@@ -300,6 +305,9 @@ def main():
     ap.add_argument("--estimator", choices=("screen", "full"), default="screen")
     ap.add_argument("--design", choices=("grid", "gradient", "both"), default="grid")
     ap.add_argument("--no-oracle", action="store_true", help="skip the whatif of the true plant model")
+    ap.add_argument("--pad", action="store_true",
+                    help="pad each loop to the screen's length bucket (masked), so loops of many lengths share a "
+                         "few compiled programs (the fleet)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     settings = SCREEN_ESTIMATE if args.estimator == "screen" else Settings(use_spline=False)
@@ -310,7 +318,7 @@ def main():
         cases = [Fleet(s, lp) for s, lp in zip(args.seeds, realistic_fleet(args.seeds, "stiction"))]
     rows = []
     for c in cases:
-        r = one_loop(c, settings, WhatIfSettings(), not args.no_oracle, designs)
+        r = one_loop(c, settings, WhatIfSettings(), not args.no_oracle, designs, args.pad)
         rows.append(r)
         if not args.json:
             print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f} J {r['J']:5.2f}/"

@@ -99,6 +99,7 @@ from ._fleet import (
     RUN_IN as FLEET_RUN_IN,
 )
 from ._linalg import is_stable as is_stable, lstsq as lstsq
+from ._loop import pad as pad
 from ._misc import (
     chunked_vmap as chunked_vmap,
     default_threads as default_threads,

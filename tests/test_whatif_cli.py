@@ -224,3 +224,10 @@ def test_trend_groups_recordings_of_a_tag(tmp_path):
     assert [x["tag"] for x in v] == ["FIC1"] and [r["name"] for r in v[0]["recordings"]] == ["FIC1_1", "FIC1_2"]
     assert v[0]["change"] == "grows" and v[0]["recordings"][1]["grows"]
     assert (tmp_path / "out" / "trend" / "FIC1.png").stat().st_size > 0
+
+
+def test_a_parked_compensated_valve_is_flagged():
+    from jaxstiction._whatif.report import _parked
+
+    assert _parked(2.76, 37.3)  # CHEM23's knocker: the valve sits at its balance point
+    assert not _parked(30.0, 37.3) and not _parked(80.0, 37.3) and not _parked(0.0, 0.0)

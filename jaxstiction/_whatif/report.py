@@ -49,6 +49,16 @@ def _stats(s, i=None) -> dict:
                                              "travel", "reversals")}
 
 
+PARKED = ("the knocker's predicted gain comes from a valve that stays parked at one position (travel {travel:.3g} "
+          "against {travel0:.3g} % of span per hour as is): it holds only while the load does not move the balance "
+          "point, so treat it as optimistic")
+
+
+def _parked(travel_comp: float, travel_as_is: float) -> bool:
+    """The compensated valve barely moves: under a quarter of the as-is travel."""
+    return travel_as_is > 0 and travel_comp < 0.25 * travel_as_is
+
+
 def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> dict:
     """The `whatif` object of one loop from an unbatched [`jaxstiction.WhatIf`][] (see
     the command-line page): the fields of the contract, each null with a `note`
@@ -97,6 +107,8 @@ def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> di
     if usable and c["error_std"] >= a["error_std"]:
         notes.append("no knocker of the grid reduces the variability of this loop: the compensator is the "
                      "grid's best, and it does not help")
+    elif usable and _parked(float(c["travel"]), float(a["travel"])):
+        notes.append(PARKED.format(travel=float(c["travel"]), travel0=float(a["travel"])))
 
     def num(v, nd=4):
         return _r(v, nd) if usable else None
@@ -155,6 +167,8 @@ def compensation_json(c, ts: float) -> dict:
     notes = []
     if k >= a:
         notes.append("no knocker of the grid reduces the variability of this loop")
+    elif _parked(_f(c.travel_compensated), _f(c.travel_as_is)):
+        notes.append(PARKED.format(travel=_f(c.travel_compensated), travel0=_f(c.travel_as_is)))
     if a - r <= 0:
         notes.append("the replay predicts no benefit from a repair either: the valve does not limit this loop")
     fit = _f(c.controller.fit)
