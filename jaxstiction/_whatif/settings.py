@@ -13,9 +13,9 @@ class KnockerGrid(eqx.Module):
     """The knocker parameters [`jaxstiction.compensate`][] searches (static: they fix
     the grid's shape).
 
-    - `amplitudes`: pulse amplitudes as multiples of the fitted slip jump plus half the
-      deadband, $J + (S - J)/2 = (S + J)/2$ (the OP step that moves a stuck valve:
-      it must cross the stickband), so one grid serves valves of any size;
+    - `amplitudes`: pulse amplitudes as multiples of the fitted band S (the OP step
+      that moves a stuck valve either way is at most S), so one grid serves valves of
+      any size;
     - `widths`: pulse widths, in samples;
     - `periods`: pulse periods, in samples (pairs with a period shorter than twice
       the width are left out: a knocker whose pulses touch is a bias, not a knock).
@@ -52,8 +52,9 @@ class CompensateSettings(eqx.Module):
       the knocker's price). 0: variability alone.
     - `method`: `"grid"` (every grid point simulated with the Kano valve, in one
       vmapped closed-loop run) or `"gradient"` (gradient descent on amplitude and a
-      continuous width, through a smoothed Kano valve, from the best grid points of
-      each period; `gradient_steps` steps, `smooth` the smoothing width in % of
+      continuous width, through a smoothed Kano valve, from `gradient_starts` periods
+      spread over the grid's, at its median amplitude and width 1; `gradient_steps`
+      Adam steps, `smooth` the smoothing width in % of
       span; the result is scored on the exact valve).
     """
 
