@@ -267,7 +267,10 @@ def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, desig
 
 
 def summary(rows, designs) -> dict:
-    res = {}
+    """The figures over the loops the what-if could read (`enough`, and a finite
+    truth over the same samples); `unusable` lists the others."""
+    res = {"unusable": seeds_text([r["seed"] for r in rows if not (r["enough"] and np.isfinite(r["true_rep"]))])}
+    rows = [r for r in rows if r["enough"] and np.isfinite(r["true_rep"])]
     err = np.array([r["rep"] / r["true_rep"] - 1 for r in rows])
     ok = np.abs(err) <= 0.15
     res["repaired"] = dict(loops=len(rows), within_15=int(np.sum(ok)), share=float(np.mean(ok)),
