@@ -87,7 +87,10 @@ class WhatIfSettings(eqx.Module):
     - `level`: the intervals' coverage (their ends are the quantiles of the kept
       draws and the fit), and the level of the test that keeps a draw.
     - `init_count`: candidate stopping points per direction of the Kano valve when
-      the initial state of each model is estimated from the record.
+      the initial state of each model is estimated from the record. With too few, a
+      valve whose hidden state at the start (where it stuck, which way it last
+      moved) no candidate shares slips at the wrong time in the replay, which the
+      disturbance then carries as a spurious step.
     - `reversal_threshold`: a valve reverses when it has moved more than this (% of
       span) against its previous direction of travel; smaller moves are not counted
       (as a positioner's reversal counter ignores its own resolution).
@@ -105,7 +108,7 @@ class WhatIfSettings(eqx.Module):
 
     draws: int = eqx.field(static=True, default=24)
     level: float = eqx.field(static=True, default=0.9)
-    init_count: int = eqx.field(static=True, default=8)
+    init_count: int = eqx.field(static=True, default=32)
     reversal_threshold: float = eqx.field(static=True, default=0.1)
     min_controller_fit: float = eqx.field(static=True, default=0.8)
     min_samples: int = eqx.field(static=True, default=200)

@@ -301,7 +301,7 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
 
 
 def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = CompensateSettings(), *,
-                controller: Controller | None = None, init_count: int = 8,
+                controller: Controller | None = None, init_count: int = 32,
                 reversal_threshold: float = 0.1, min_samples: int = 200) -> Compensation:
     r"""Design a knocker for one loop on its identified closed loop (see
     `jaxstiction._whatif.compensate`).
