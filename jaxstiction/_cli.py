@@ -1,4 +1,4 @@
-"""Command line: `jaxstiction demo | fit | screen | diagnose`.
+"""Command line: `jaxstiction demo | fit | screen | diagnose | compensate | trend`.
 
 Every command takes `--json` (exactly one JSON object on stdout, nothing else there)
 and `--out DIR` (pictures and a report). Progress and messages go to stderr. Bad input
@@ -147,6 +147,9 @@ def cmd_fit(args):
 
     if not 0.0 <= args.validate < 1.0:  # bad options fail before the record is read
         raise ValueError(f"`--validate` must be a fraction in [0, 1), got {args.validate:g}")
+    if args.pi and not args.whatif:
+        raise ValueError("`--pi` gives the controller of the what-if: it needs --whatif")
+    _pi(args)
     loop = decimate(read_loop(args.file, ts=args.ts, name=args.name), args.decimate)
     name = args.name if args.name is not None else loop_name(args.file)
     op, pv, ts = np.asarray(loop.op), np.asarray(loop.pv), float(loop.ts)
@@ -160,8 +163,94 @@ def cmd_fit(args):
         for n in r.notes:
             _log(f"fit: note: {n}")
     _figures(args, r, validation_start=r.n_estimation if r.n_validation else None)
-    _emit(args, {**r.to_json(), **_decimate_field(args)}, _summary(r))
+    payload, text = {**r.to_json(), **_decimate_field(args)}, _summary(r)
+    if args.whatif:
+        entry = _whatif_of(args, r.fit, loop, name)
+        payload["whatif"] = entry
+        text += "\n" + _whatif_text(entry)
+    _emit(args, payload, text)
     return 0
+
+
+def _pi(args):
+    """`--pi GAIN,TI` as `(gain, integral time)`, checked before any record is read;
+    `None` without it (the controller is identified)."""
+    if not getattr(args, "pi", None):
+        return None
+    try:
+        gain, ti = (float(v) for v in args.pi.split(","))
+    except ValueError:
+        raise ValueError(f"`--pi` must be GAIN,INTEGRAL_TIME (two numbers, the integral time in seconds), "
+                         f"got {args.pi!r}") from None
+    if not (ti > 0 and gain != 0 and math.isfinite(gain) and math.isfinite(ti)):
+        raise ValueError(f"`--pi` needs a finite non-zero gain and an integral time > 0 s, got {args.pi!r}")
+    return gain, ti
+
+
+def _controller(args, ts: float):
+    """The controller `--pi GAIN,TI` gives, or `None` (identify it)."""
+    pi = _pi(args)
+    if pi is None:
+        return None
+    from ._whatif.controller import Controller
+
+    return Controller.pi(pi[0], pi[1], ts)
+
+
+def _whatif_of(args, fit, loop, name: str) -> dict:
+    """`fit --whatif`: the `whatif` object of one fitted loop, and its picture in `--out`."""
+    import jax
+    import numpy as np
+
+    from ._whatif.report import whatif_json
+    from ._whatif.settings import WhatIfSettings
+    from ._whatif.whatif import whatif
+
+    settings = WhatIfSettings()
+    ts = float(loop.ts)
+    controller = _controller(args, ts)
+    _log(f"fit: {name}: closing the fitted loop again (as is, repaired, compensated) ...")
+    t0 = time.time()
+    w = jax.tree.map(np.asarray, whatif(fit, loop, settings, controller=controller))
+    _log(f"fit: what-if done in {time.time() - t0:.1f} s")
+    entry = whatif_json(w, ts, settings)
+    if args.out:
+        from ._whatif.figure import write_whatif_figure
+
+        n = int(np.asarray(loop.op).shape[0])
+        sp = np.asarray(loop.setpoint)
+        sp = sp if np.all(np.isfinite(sp)) else np.full(n, float(np.mean(np.asarray(loop.pv))))
+        traces = {"sp": sp, "start": int(w.start), **{f"{q}_{s}": getattr(w, f"{q}_{s}") for q in ("pv", "valve", "op")
+                                                      for s in ("as_is", "repaired", "compensated")}}
+        write_whatif_figure(name, ts, traces, entry, Path(args.out) / "whatif.png")
+    return entry
+
+
+def _whatif_text(e: dict) -> str:
+    """The text summary of a `whatif` object."""
+    def f(v, nd=3):
+        return "–" if v is None else f"{v:.{nd}g}"
+
+    iv = e.get("error_std_repaired_interval")
+    k, c = e["compensator"], e["controller"]
+    lines = [
+        "  what a repair would buy (the fitted loop replayed under the disturbance it met):",
+        f"    std(SP - PV): as is {f(e['error_std_as_is'])}, repaired {f(e['error_std_repaired'])}"
+        + (f" [{f(iv[0])}, {f(iv[1])}]" if iv else "") + f", with a knocker {f(e['error_std_compensated'])}"
+        f" (recorded {f(e['error_std_recorded'])}); benefit {f(e['benefit'])}"
+        + (f" ({f(e['benefit_percent_of_range'])} % of the PV range)" if e.get("benefit_percent_of_range") is not None
+           else ""),
+        f"    valve travel (% of span per hour): as is {f(e['travel_as_is'], 4)}, repaired "
+        f"{f(e['travel_repaired'], 4)}, with a knocker {f(e['travel_compensated'], 4)}; reversals per hour "
+        f"{f(e['reversals_as_is'], 4)}, {f(e['reversals_repaired'], 4)}, {f(e['reversals_compensated'], 4)}",
+        f"    knocker: amplitude {f(k['amplitude'])} %, width {k['width_samples']}, period {k['period_samples']} "
+        "samples",
+        f"    controller: kp {f(c['kp'], 4)}, ki {f(c['ki'], 4)} per sample ({c['source']}, explains "
+        f"{f(100 * c['fit'] if c['fit'] is not None else None, 3)} % of OP's moves)",
+    ]
+    if e.get("note"):
+        lines.append(f"    note: {e['note']}")
+    return "\n".join(lines)
 
 
 def screen_settings(args):
@@ -172,7 +261,13 @@ def screen_settings(args):
     estimate = FULL_SEARCH_ESTIMATE if args.full_search else SCREEN_ESTIMATE
     if args.max_delay is not None:
         estimate = estimate.with_max_delay(args.max_delay)
-    return ScreenSettings(estimate=estimate, threads=args.threads or 0, chunk=getattr(args, "chunk", None) or 0)
+    whatif = None
+    if getattr(args, "whatif", False):
+        from ._whatif.settings import WhatIfSettings
+
+        whatif = WhatIfSettings()
+    return ScreenSettings(estimate=estimate, threads=args.threads or 0, chunk=getattr(args, "chunk", None) or 0,
+                          whatif=whatif)
 
 
 def cmd_screen(args):
@@ -181,10 +276,17 @@ def cmd_screen(args):
 
     progress = not args.json and sys.stderr.isatty() and not args.quiet
     t0 = time.time()
+    if args.criticality and not args.whatif:
+        raise ValueError("--criticality ranks by what a repair would buy: it needs --whatif")
+    criticality = None
+    if args.criticality:
+        from ._screen.whatif import read_criticality
+
+        criticality = read_criticality(args.criticality)  # a bad table fails before any loop is fitted
     settings = screen_settings(args)
     rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
                  pictures=bool(args.out), diagnose=args.diagnose, recursive=args.recursive,
-                 decimate=args.decimate)
+                 decimate=args.decimate, criticality=criticality)
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -199,12 +301,34 @@ def cmd_screen(args):
                          f"{f(e.get('evidence_prediction')):>8} {f(e['fitness']):>9}")
         else:
             lines.append(f"{e['name']:<16} error  {e['status']}")
+    if args.whatif:
+        lines += _ranking_text(rep.loops)
     summary = rep.summary_line() + f" ({time.time() - t0:.0f} s)"
     lines.append(summary)
     if args.json:
         _log(summary)
     _emit(args, {**rep.to_json(), **_decimate_field(args)}, "\n".join(lines))
     return 0
+
+
+def _ranking_text(loops) -> list[str]:
+    """`screen --whatif`: the sticky loops in the maintenance ranking's order."""
+    rows = [e for e in loops if isinstance(e.get("whatif"), dict)]
+    if not rows:
+        return ["maintenance ranking: no sticky loop"]
+
+    def f(v, nd=3):
+        return "–" if v is None else f"{v:.{nd}g}"
+
+    lines = ["maintenance ranking (predicted fall of std(SP - PV) from a repair, x criticality):",
+             f"  {'loop':<16} {'as is':>9} {'repaired':>9} {'benefit':>9} {'% range':>8} {'weight':>6} "
+             f"{'priority':>8} {'knocker':>9}"]
+    for e in rows:
+        w = e["whatif"]
+        lines.append(f"  {e['name']:<16} {f(w.get('error_std_as_is')):>9} {f(w.get('error_std_repaired')):>9} "
+                     f"{f(w.get('benefit')):>9} {f(w.get('benefit_percent_of_range')):>8} "
+                     f"{f(w.get('criticality')):>6} {f(w.get('priority')):>8} {f(w.get('error_std_compensated')):>9}")
+    return lines
 
 
 def _diagnosis_text(name, d) -> str:
@@ -263,6 +387,76 @@ def cmd_diagnose(args):
     return 0
 
 
+def cmd_compensate(args):
+    import jax
+    import numpy as np
+
+    from ._estimate.report import fit
+    from ._estimate.settings import FULL_SEARCH_ESTIMATE
+    from ._io.read import loop_name, read_loop
+    from ._loop import decimate
+    from ._whatif.report import compensation_json
+    from ._whatif.settings import CompensateSettings
+    from ._whatif.whatif import compensate
+
+    settings = CompensateSettings(method=args.method, travel_weight=args.travel_weight)  # bad options fail first
+    _pi(args)
+    loop = decimate(read_loop(args.file, ts=args.ts, name=args.name), args.decimate)
+    name = args.name if args.name is not None else loop_name(args.file)
+    ts = float(loop.ts)
+    controller = _controller(args, ts)
+    op, pv = np.asarray(loop.op), np.asarray(loop.pv)
+    _log(f"compensate: {name}: {op.shape[0]} samples, Ts = {ts:g} s{_decimated(args)}; fitting the valve and "
+         "the process ...")
+    _long_record_note("fit", op.shape[0], args.decimate)
+    t0 = time.time()
+    r = fit(op, pv, ts=ts, name=name, settings=FULL_SEARCH_ESTIMATE)
+    _log(f"compensate: fitted in {time.time() - t0:.1f} s (S = {r.S:.3g}, J = {r.J:.3g} % of span); designing a "
+         f"knocker ({args.method}) ...")
+    t0 = time.time()
+    c = jax.tree.map(np.asarray, compensate(r.fit, loop, settings, controller=controller))
+    _log(f"compensate: designed in {time.time() - t0:.1f} s")
+    payload = {"name": name, **compensation_json(c, ts), "S": r.S, "J": r.J, "fitness": r.fitness,
+               **_decimate_field(args)}
+    if args.out:
+        from ._whatif.figure import write_compensation_figure
+
+        sp = np.asarray(loop.setpoint)
+        sp = sp if np.all(np.isfinite(sp)) else np.full(op.shape[0], float(np.mean(pv)))
+        write_compensation_figure(name, ts, sp, c, payload, Path(args.out) / "compensate.png")
+    k = payload["compensator"]
+    text = "\n".join([
+        f"loop {name}: knocker for a Kano valve S = {r.S:.3g}, J = {r.J:.3g} % of span ({args.method} design)",
+        f"  pulses of {k['amplitude']:.3g} % of span, {k['width_samples']} sample(s) wide "
+        f"({k['width_s']:g} s), every {k['period_samples']} samples ({k['period_s']:g} s), in the direction OP moves",
+        f"  std(SP - PV): as is {payload['error_std_as_is']:.4g}, with the knocker "
+        f"{payload['error_std_compensated']:.4g} ({payload['reduction_percent']:.1f} % less), repaired "
+        f"{payload['error_std_repaired']:.4g}",
+        f"  valve travel: {payload['travel_as_is']:.4g} -> {payload['travel_compensated']:.4g} % of span per hour; "
+        f"reversals {payload['reversals_as_is']:.4g} -> {payload['reversals_compensated']:.4g} per hour",
+    ] + ([f"  note: {payload['note']}"] if payload["note"] else []))
+    _emit(args, payload, text)
+    return 0
+
+
+def cmd_trend(args):
+    from ._whatif.trend import trend_text, valve_trend
+
+    mapping = None
+    if args.tags:
+        from ._whatif.trend import read_tags
+
+        mapping = read_tags(args.tags)
+    report = valve_trend(args.paths, mapping=mapping, ts=args.ts, recursive=args.recursive,
+                         progress=lambda m: _log(f"trend: {m}"))
+    if args.out:
+        from ._whatif.trend import write_trend_figures
+
+        write_trend_figures(report, Path(args.out))
+    _emit(args, report, trend_text(report))
+    return 0
+
+
 def _version() -> str:
     """`jaxstiction X (jax Y, jaxlib Z)`, from the installed metadata: the exported
     programs and the lean compiler flag depend on the JAX versions, so a report of a
@@ -296,6 +490,10 @@ _NAME_HELP = ("which loop of a file holding several: a loop of a .mat file, or a
               "columns (FIC101 for FIC101.OP, FIC101.PV)")
 
 
+_PI_HELP = ("the controller's PI tuning instead of identifying it: gain (OP %% per PV unit, negative for a "
+            "direct-acting loop) and integral time (s), e.g. 0.8,120")
+
+
 _DECIMATE_HELP = ("fit the record at a K times longer sampling time, the means of K samples (for a record "
                   "sampled much faster than its loop moves: delays, orders and horizons count samples)")
 
@@ -323,6 +521,10 @@ def build_parser():
     f.add_argument("--max-delay", type=_whole, default=None, metavar="N",
                    help="longest process dead time tried, in samples (default 3)")
     f.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
+    f.add_argument("--whatif", action="store_true",
+                   help="also say what a repair would buy: the fitted loop closed again with the identified "
+                        "controller under the disturbance it met, as is, repaired and with a knocker")
+    f.add_argument("--pi", metavar="GAIN,TI", default=None, help=_PI_HELP)
     f.set_defaults(func=cmd_fit)
     s = sub.add_parser("screen", parents=[common],
                        help="screen loops (files, folders) for sticky valves, ranked; name other causes")
@@ -347,6 +549,12 @@ def build_parser():
     s.add_argument("--threads", type=_whole, default=None, metavar="N",
                    help="batched fits running at once, each on one core (default: one per CPU core, at most 8; "
                         "memory grows with N)")
+    s.add_argument("--whatif", action="store_true",
+                   help="give each sticky loop a `whatif` object (what a repair would buy) and rank the sticky "
+                        "loops by that benefit in %% of their PV range")
+    s.add_argument("--criticality", metavar="CSV", default=None,
+                   help="with --whatif: weights per tag (columns tag, weight) multiplying each loop's benefit in "
+                        "the ranking")
     s.add_argument("--chunk", type=_whole, default=None, metavar="N",
                    help="loops per batched call (default: sized to the machine: 2 on a CPU, up to 1024 on a GPU "
                         "as its memory allows); the results do not depend on it")
@@ -366,6 +574,30 @@ def build_parser():
     g.add_argument("--decimate", type=_whole, default=1, metavar="K",
                    help=_DECIMATE_HELP + "; not with --model, which is written for the record's own sampling time")
     g.set_defaults(func=cmd_diagnose)
+    c = sub.add_parser("compensate", parents=[common],
+                       help="design a knocker (Hagglund 2002) on the identified closed loop, until the valve's repair")
+    c.add_argument("file", help="the loop's record: CSV with OP and PV columns (t, SP optional), or MATLAB .mat")
+    c.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
+    c.add_argument("--name", default=None, help=_NAME_HELP)
+    c.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
+    c.add_argument("--method", choices=("grid", "gradient"), default="grid",
+                   help="grid: every point of the knocker grid simulated (default); gradient: descent through a "
+                        "smoothed valve from a few starts")
+    c.add_argument("--travel-weight", type=float, default=0.05, metavar="W",
+                   help="what a doubling of the valve travel costs in the design, as a share of the as-is "
+                        "variability (default 0.05)")
+    c.add_argument("--pi", metavar="GAIN,TI", default=None, help=_PI_HELP)
+    c.set_defaults(func=cmd_compensate)
+    t = sub.add_parser("trend", parents=[common],
+                       help="S and J per recording of each valve, in order, and whether its band grows")
+    t.add_argument("paths", nargs="+", help="CSV or .mat files, or folders holding them")
+    t.add_argument("-r", "--recursive", action="store_true", help="also the loop files in subfolders")
+    t.add_argument("--ts", type=float, default=None, help="sampling time (s) for files without a t column")
+    t.add_argument("--tags", metavar="FILE", default=None,
+                   help="the valve of each recording: a JSON object name -> tag (or a labels.json whose `loops` "
+                        "give each a `valve`), or a CSV with name and tag columns; default: a `tag` column, else "
+                        "the file name up to its last _ or -")
+    t.set_defaults(func=cmd_trend)
     return p
 
 

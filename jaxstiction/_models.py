@@ -213,6 +213,15 @@ class LoopModel(eqx.Module):
         `window` (static): when `weights` are zero from that sample on, the search
         runs on the samples before it only: the same answer for less work.
         """
+        states, errs = self.initial_candidates(op, pv, weights, count=count, window=window)
+        return jax.tree.map(lambda t: t[jnp.argmin(errs)], states)
+
+    def initial_candidates(self, op, pv, weights, *, count: int = 16, window: int | None = None):
+        """`(states, errors)`: every candidate initial state that
+        [`jaxstiction.LoopModel.initial_state`][] weighs (an `InitialState` with a
+        leading axis, its hold level and filter state fitted) and its weighted sum of
+        squared prediction errors (`inf` where not finite); `initial_state` picks the
+        least. Same arguments."""
         op, pv, weights = _f(op), _f(pv), _f(weights)
         if window is not None and window < op.shape[0]:
             # every filter is causal: the samples after the last weighted one change nothing
@@ -253,11 +262,12 @@ class LoopModel(eqx.Module):
             errs, ths = chunked_vmap(lambda c: one(c), (cands,), chunk)
         else:  # memoryless chain (e.g. travel limits): one candidate
             errs, ths = jax.tree.map(lambda t: t[None], one(cands))
-        i = jnp.argmin(errs)
-        th = ths[i]
-        chain = jax.tree.map(lambda t: t[i], cands)
-        out = tuple(blk.init(self.pv_offset) for blk in self.output)
-        return InitialState(chain, th[0] + self.op_offset, jnp.asarray(True), th[1:], out)
+            cands = jax.tree.map(lambda t: jnp.asarray(t)[None], cands)
+        k = errs.shape[0]
+        out = tuple(jax.tree.map(lambda t: jnp.broadcast_to(t, (k,) + jnp.shape(t)), blk.init(self.pv_offset))
+                    for blk in self.output)
+        states = InitialState(cands, ths[:, 0] + self.op_offset, jnp.ones((k,), bool), ths[:, 1:], out)
+        return states, errs
 
     def _chain_candidates(self, op, count: int):
         """Candidate initial states of the chain (leading axis): each block's own

@@ -91,9 +91,15 @@ from ._estimate.relax import (
 from ._estimate.result import delay_note as delay_note, held_out_note as held_out_note
 from ._estimate.settings import FULL_SEARCH_ESTIMATE as FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE as SCREEN_ESTIMATE
 from ._filters import lagged as lagged, steady_state as steady_state
-from ._fleet import FleetLoop as FleetLoop, KINDS as FLEET_KINDS, realistic_fleet as realistic_fleet
+from ._fleet import (
+    _draw as fleet_draw,
+    FleetLoop as FleetLoop,
+    KINDS as FLEET_KINDS,
+    realistic_fleet as realistic_fleet,
+    RUN_IN as FLEET_RUN_IN,
+)
 from ._linalg import is_stable as is_stable, lstsq as lstsq
-from ._loop import bucket_length as bucket_length
+from ._loop import bucket_length as bucket_length, pad as pad
 from ._misc import (
     chunked_vmap as chunked_vmap,
     default_threads as default_threads,
@@ -158,3 +164,20 @@ from ._verdict.verdict import (
     usable as usable,
     VERDICTS as VERDICTS,
 )
+from ._whatif.closedloop import (
+    closed_loop as closed_loop,
+    ClosedLoopRun as ClosedLoopRun,
+    count_reversals as count_reversals,
+    loop_stats as loop_stats,
+    settling_time as settling_time,
+    SmoothKano as SmoothKano,
+)
+from ._whatif.compensate import (
+    design_knocker as design_knocker,
+    grid_knockers as grid_knockers,
+    smooth_objective as smooth_objective,
+)
+from ._whatif.replay import initial_and_sync as initial_and_sync, Replay as Replay, replay as replay
+from ._whatif.report import compensation_json as compensation_json, whatif_json as whatif_json
+from ._whatif.uncertainty import draw_models as draw_models, process_factor as process_factor
+from ._whatif.whatif import chi2_quantile as chi2_quantile, whatif_model as whatif_model

@@ -205,6 +205,10 @@ def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSe
             out.append(_record(name, file, op, pv, ts, fit, ver, settings.estimate, pictures, settings.verdict))
         except Exception as e:  # noqa: BLE001
             out.append(_error(name, file, f"report failed: {error_line(e, 300)}", op.shape[0], ts))
+    if settings.whatif is not None:  # `screen --whatif`: see `whatif.add_whatif`
+        from .whatif import add_whatif
+
+        add_whatif(out, fits, batch, settings.whatif, pictures)
     return out
 
 

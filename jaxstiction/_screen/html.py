@@ -250,6 +250,9 @@ def _row(rank: int, r: dict) -> str:
     pic = r.get("picture")
     thumb = (f'<a href="{e(pic)}" target="_blank" title="open the picture"><img src="{e(pic)}" loading="lazy" '
              f'alt="{e(r["name"])}"></a>') if pic else ""
+    if r.get("whatif_picture"):  # `screen --whatif`: as is, repaired, compensated
+        thumb += (f'<br><a href="{e(r["whatif_picture"])}" target="_blank" title="as is, repaired and compensated">'
+                  "what a repair would buy</a>")
     bar = "" if p is None else (f' style="background: linear-gradient(to right, {_tint(verdict)} '
                                 f'{100 * float(p):.0f}%, transparent {100 * float(p):.0f}%)"')
     cells = [

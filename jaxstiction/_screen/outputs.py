@@ -11,8 +11,9 @@ from .screen import ScreenReport
 
 
 def write_screen_outputs(report: ScreenReport, out_dir: str | os.PathLike) -> list[Path]:
-    """Write `summary.csv`, one picture per loop (`loops/NAME.png`) and a static
-    `report.html` (ranked loops with verdict, band and thumbnails) into `out_dir`."""
+    """Write `summary.csv`, one picture per loop (`loops/NAME.png`; with `--whatif`,
+    one more per sticky loop, `whatif/NAME.png`) and a static `report.html` (ranked
+    loops with verdict, band and thumbnails) into `out_dir`."""
     from .figure import write_screen_loop_figure  # matplotlib, only when pictures are written
 
     out = Path(out_dir)
@@ -22,6 +23,12 @@ def write_screen_outputs(report: ScreenReport, out_dir: str | os.PathLike) -> li
         if "figure" in r:
             r["picture"] = f"loops/{_safe(r['name'])}.png"
             written.append(write_screen_loop_figure(r, out / r["picture"]))
+        if "whatif_figure" in r:  # `screen --whatif`: as is, repaired and compensated side by side
+            from .._whatif.figure import write_whatif_figure
+
+            r["whatif_picture"] = f"whatif/{_safe(r['name'])}.png"
+            written.append(write_whatif_figure(r["name"], float(r.get("Ts") or 1.0), r["whatif_figure"],
+                                               r["whatif"], out / r["whatif_picture"]))
     written.append(write_html(report, out / "report.html"))
     return written
 

@@ -155,7 +155,7 @@ class ScreenReport:
                 f"{c['sticky']} sticky")
 
     def to_json(self) -> dict:
-        loops = [{k: v for k, v in r.items() if k != "figure"} for r in self.loops]
+        loops = [{k: v for k, v in r.items() if k not in ("figure", "whatif_figure")} for r in self.loops]
         return {"loops": loops, "summary": self.counts}
 
 
@@ -177,7 +177,7 @@ def _progress_bar(show: bool, total: int, desc: str):
 def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
            ts: float | None = None, progress: bool = False, scheduler: Any = None,
            pictures: bool = False, diagnose: bool = False, recursive: bool = False,
-           decimate: int = 1) -> ScreenReport:
+           decimate: int = 1, criticality: Mapping[str, float] | None = None) -> ScreenReport:
     """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
     for sticky valves, and name the cause of the others.
 
@@ -202,6 +202,9 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
       sampled much faster than their loops move.
     - `diagnose`: name the cause of the loops not called sticky by the full
       diagnosis (`diagnose_causes`).
+    - `criticality`: weights per tag for the maintenance ranking (with
+      `settings.whatif`): the sticky loops are ranked by the predicted benefit of a
+      repair in % of their PV range times their weight (`rank_by_benefit`).
 
     **Returns:** a [`jaxstiction.ScreenReport`][].
 
@@ -220,6 +223,11 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     for r in results:  # what the reader warned of goes first in the loop's note
         if r["name"] in warned:
             r["note"] = "; ".join(n for n in (warned[r["name"]], r.get("note", "")) if n)
-    return ScreenReport(loops=rank(errors + results))
+    ranked = rank(errors + results)
+    if settings.whatif is not None:
+        from .whatif import rank_by_benefit
+
+        ranked = rank_by_benefit(ranked, dict(criticality) if criticality else None)
+    return ScreenReport(loops=ranked)
 
 

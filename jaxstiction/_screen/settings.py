@@ -7,6 +7,7 @@ import equinox as eqx
 from .._checks import check_counts
 from .._estimate.settings import SCREEN_ESTIMATE, Settings
 from .._verdict.settings import VerdictSettings
+from .._whatif.settings import WhatIfSettings
 
 
 class ScreenSettings(eqx.Module):
@@ -28,6 +29,9 @@ class ScreenSettings(eqx.Module):
       core, at most 8). XLA's CPU backend runs one call's work on one core at a time, so a
       second call in flight uses a second core; memory grows with the calls in
       flight. (Without a Dask scheduler.)
+    - `whatif`: [`jaxstiction.WhatIfSettings`][] to give every sticky loop a
+      `whatif` object (what a repair would buy, `screen --whatif`); `None` (the
+      default): none.
     """
 
     estimate: Settings = SCREEN_ESTIMATE
@@ -35,6 +39,7 @@ class ScreenSettings(eqx.Module):
     chunk: int = eqx.field(static=True, default=0)
     samples_per_call: int = eqx.field(static=True, default=0)
     threads: int = eqx.field(static=True, default=0)
+    whatif: WhatIfSettings | None = None
 
     def __check_init__(self):
         check_counts(self, nonnegative=("chunk", "samples_per_call", "threads"))

@@ -1,0 +1,350 @@
+"""What fixing the valve would buy, against the truth: simulated sticky loops whose
+plant is known, fitted and replayed by `jaxstiction.whatif`, then the true plant run
+again with a linear valve and with the designed knocker under the same noise and
+setpoint.
+
+    python benchmarks/whatif.py --set concealed --seeds 0-23 --estimator full   # (a), (c)
+    python benchmarks/whatif.py --set concealed --seeds 0-23                    # the screen's fits
+    python benchmarks/whatif.py --set fleet --seeds 0-49 --pad --no-oracle      # (b): ranking, 50 loops
+    python benchmarks/whatif.py --set concealed --seeds 0-7 --design both       # grid against gradient
+    python benchmarks/whatif.py ... --json
+
+Two sets of loops:
+
+- `concealed`: the concealed-case process (q^-1 + 0.5 q^-2)/(1 - 1.5 q^-1 + 0.7 q^-2)
+  around OP 50 with a Kano valve, S uniform on 1-10 % and J on 0-S; the detuned PI
+  (kp 0.05, ki 0.01; even seeds) or the paper's tight one (kp 0.3, ki 0.01; odd
+  seeds); the setpoint constant (seeds 0, 1 mod 4) or stepping every 300-600
+  samples by up to +-10 (seeds 2, 3 mod 4); AR(1) noise (pole 0.9, std 0.2-2 PV
+  units) at the output and a slowly wandering load (AR(1), pole 0.995, std 0.3-2 %)
+  at the process input, so a loop with a constant setpoint cycles too. 500 samples
+  of run-in, then 2000 recorded, with the setpoint. Ts = 1 s.
+- `fleet`: `jaxstiction.internal.realistic_fleet(seeds, "stiction")`: processes,
+  dead times (1-20 samples), tunings, setpoints, loads and historian effects drawn
+  per loop (500-3000 samples).
+
+Per loop: the fit (`--estimator screen`: the screen's `SCREEN_ESTIMATE`, what
+`screen --whatif` replays; `full`: `Settings(use_spline=False)`, the Kano search of
+`fit --whatif`), `whatif` (default settings), and the truth over the same samples
+(from the what-if's `start`): the plant as recorded, with a linear valve, and with
+the designed knocker. Also `oracle`: `whatif_model` of the true plant model (the
+method with a perfect fit). Prints per loop and a summary: the share of loops whose
+`error_std_repaired` is within +-15 % of the truth (min, median, which seeds miss),
+Spearman's rho of predicted against true benefit, and the share of a repair's
+variability reduction that the knocker achieves on the true plant, with its travel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from _args import seeds_arg, seeds_text  # noqa: E402
+
+from jaxstiction import (  # noqa: E402
+    CompensateSettings,
+    Controller,
+    estimate,
+    Kano,
+    make_loop,
+    Settings,
+    whatif,
+    WhatIfSettings,
+)
+from jaxstiction.internal import (  # noqa: E402
+    bucket_length,
+    closed_loop,
+    fleet_draw,
+    FLEET_RUN_IN,
+    nominal_model,
+    pad,
+    realistic_fleet,
+    SCREEN_ESTIMATE,
+    whatif_model,
+)
+
+
+RUN, N = 500, 2000
+
+
+# ---------------------------------------------------------------------------- concealed
+
+
+def _ar1(rng, n, pole, std):
+    e = rng.standard_normal(n) * std * np.sqrt(1 - pole**2)
+    x = np.empty(n)
+    x[0] = e[0] / np.sqrt(1 - pole**2)
+    for t in range(1, n):
+        x[t] = pole * x[t - 1] + e[t]
+    return x
+
+
+def _through_process(x):
+    """`x` through (q^-1 + 0.5 q^-2)/(1 - 1.5 q^-1 + 0.7 q^-2) (a load at the input)."""
+    y = np.zeros_like(x)
+    for t in range(2, x.shape[0]):
+        y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + x[t - 1] + 0.5 * x[t - 2]
+    return y
+
+
+class Concealed:
+    """One concealed-case loop (see the module notes): `truth(S, J, knocker)` runs the
+    plant over run-in and record and returns the recorded part."""
+
+    def __init__(self, seed: int):
+        rng = np.random.default_rng(seed)
+        self.seed = seed
+        self.S = float(rng.uniform(1, 10))
+        self.J = float(rng.uniform(0, self.S))
+        self.tight = seed % 2 == 1
+        self.steps = (seed // 2) % 2 == 1
+        self.kp, self.ki = (0.3, 0.01) if self.tight else (0.05, 0.01)
+        r = np.zeros(RUN + N)
+        if self.steps:
+            t = RUN + 200
+            while t < RUN + N:
+                r[t:] += rng.uniform(-10, 10)
+                t += int(rng.integers(300, 600))
+        noise = _ar1(rng, RUN + N, 0.9, float(np.exp(rng.uniform(np.log(0.2), np.log(2.0)))))
+        load = _ar1(rng, RUN + N, 0.995, float(rng.uniform(0.3, 2.0)))
+        self.sp_full = r
+        self.v_full = noise + _through_process(load)
+        self.kind = f"{'tight' if self.tight else 'detuned'}/{'steps' if self.steps else 'constant'}"
+
+    def plant(self, S=None, J=None):
+        return nominal_model(chain=(Kano(self.S if S is None else S, self.J if J is None else J),))
+
+    def truth(self, S=None, J=None, knocker=None):
+        """`(op, pv, valve, sp)` of the recorded part of the plant run with valve
+        `S`, `J` (default the plant's) and `knocker`."""
+        plant = self.plant(S, J)
+        ctrl = Controller(kp=jnp.asarray(self.kp), ki=jnp.asarray(self.ki))
+        init = plant.rest_state(jnp.full((4,), 50.0))
+        run = closed_loop(plant, ctrl, jnp.asarray(self.sp_full), jnp.asarray(self.v_full), init, 50.0, knocker)
+        cut = slice(RUN, RUN + N)
+        return np.asarray(run.op)[cut], np.asarray(run.pv)[cut], np.asarray(run.valve)[cut], self.sp_full[cut]
+
+    def record(self):
+        op, pv, _, sp = self.truth()
+        return op, pv, sp, 1.0
+
+
+# ---------------------------------------------------------------------------- fleet
+
+
+def _fleet_loop(p, r, load, out, knock):
+    """`jaxstiction._fleet._loop` with a knocker `(amplitude, width, period)` between
+    the PI and the valve (amplitude 0: none)."""
+    b, a, d, kp, ki, op0 = p["b"], p["a"], p["delay"], p["kp"], p["ki"], p["op0"]
+    valve = Kano(p["S"], p["J"])
+    amp, width, period = knock
+
+    def body(carry, inputs):
+        u1, e1, vs, xs, ys, sign, u_last, t = carry
+        rt, lt, ot = inputs
+        y = -jnp.dot(a[1:], ys) + jnp.dot(b, jnp.take(xs, d + jnp.arange(3)))
+        pv = y + ot
+        e = rt - pv
+        u = jnp.clip(u1 + kp * (e - e1) + ki * e, 0.0, 100.0)
+        start = jnp.mod(t, period) == 0
+        moved = jnp.sign(u - u_last)
+        sign = jnp.where(start & (moved != 0), moved, sign)
+        u_last = jnp.where(start, u, u_last)
+        uv = jnp.clip(u + jnp.where(jnp.mod(t, period) < width, amp * sign, 0.0), 0.0, 100.0)
+        vs, v = valve.step(vs, uv)
+        xs = jnp.concatenate([(v - op0 + lt)[None], xs[:-1]])
+        ys = jnp.concatenate([y[None], ys[:-1]])
+        return (u, e, vs, xs, ys, sign, u_last, t + 1), (u, pv, v)
+
+    zero = jnp.zeros((), r.dtype)
+    carry = (op0, zero, valve.init(op0), jnp.zeros((43,), r.dtype), jnp.zeros((3,), r.dtype), zero, op0, 0)
+    _, (u, pv, v) = jax.lax.scan(body, carry, (r, load, out))
+    return u, pv, v
+
+
+_fleet_run = jax.jit(_fleet_loop)
+
+
+class Fleet:
+    """One `realistic_fleet` stiction draw; `truth` as `Concealed.truth` (before the
+    historian: the plant's own PV)."""
+
+    def __init__(self, seed: int, loop):
+        self.seed, self.loop = seed, loop
+        self.params, self.r, self.load, self.out, self.n, _ = fleet_draw(seed, "stiction")
+        self.S, self.J = loop.S, loop.J
+        self.kind = f"{'integrating' if loop.integrating else 'self-regulating'}, delay {loop.delay}" + (
+            f", {'+'.join(h[0] for h in loop.historian)}" if loop.historian else "")
+
+    def truth(self, S=None, J=None, knocker=None):
+        p = {k: jnp.asarray(np.asarray(v, float)) for k, v in self.params.items()}
+        p["delay"] = p["delay"].astype(jnp.int32)
+        if S is not None:
+            p["S"], p["J"] = jnp.asarray(S), jnp.asarray(J)
+        knock = (0.0, 1.0, 2) if knocker is None else (knocker.amplitude, knocker.width, knocker.period)
+        u, pv, v = _fleet_run(p, jnp.asarray(self.r), jnp.asarray(self.load), jnp.asarray(self.out), knock)
+        cut = slice(FLEET_RUN_IN, FLEET_RUN_IN + self.n)
+        return np.asarray(u)[cut], np.asarray(pv)[cut] + 50.0, np.asarray(v)[cut], self.r[cut] + 50.0
+
+    def record(self):
+        return self.loop.op, self.loop.pv, self.loop.sp, 1.0
+
+    def plant(self):
+        return None  # the fleet's loops carry a load at the input: no LoopModel of them
+
+
+# ---------------------------------------------------------------------------- the run
+
+
+def spearman(x, y):
+    rx = np.argsort(np.argsort(x)).astype(float)
+    ry = np.argsort(np.argsort(y)).astype(float)
+    return float(np.corrcoef(rx, ry)[0, 1])
+
+
+def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, designs=("grid",), padded=False):
+    op, pv, sp, ts = case.record()
+    loop, bare = make_loop(op, pv, ts, sp=sp), make_loop(op, pv, ts)
+    if padded:  # as the screen does: one compiled program per length bucket
+        length = bucket_length(len(op))
+        loop, bare = pad(loop, length), pad(bare, length)
+    t0 = time.perf_counter()
+    fit = estimate(bare, settings)
+    jax.block_until_ready(fit.S)
+    t1 = time.perf_counter()
+    out = dict(seed=case.seed, kind=case.kind, S=case.S, J=case.J, S_fit=float(fit.S), J_fit=float(fit.J),
+               seconds_fit=t1 - t0)
+    for design in designs:
+        ws = eqx.tree_at(lambda s: s.compensate, wset, CompensateSettings(method=design))
+        t1 = time.perf_counter()
+        w = jax.tree.map(np.asarray, whatif(fit, loop, ws))
+        t2 = time.perf_counter()
+        start = int(w.start)
+        sl = slice(start, None)
+        _, pv_t, valve_t, sp_t = case.truth()
+        _, pv_l, valve_l, _ = case.truth(0.0, 0.0)
+        _, pv_k, valve_k, _ = case.truth(knocker=w.knocker)
+        hours = (len(sp_t) - start) * ts / 3600.0
+
+        def std(x):
+            return float(np.std(x[sl])) if start < len(x) - 10 else float("nan")
+
+        def travel(v):
+            return float(np.sum(np.abs(np.diff(v[sl])))) / hours if start < len(v) - 10 else float("nan")
+
+        true_asis, true_rep, true_comp = std(sp_t - pv_t), std(sp_t - pv_l), std(sp_t - pv_k)
+        tag = "" if design == "grid" else f"_{design}"
+        out.update({
+            f"seconds_whatif{tag}": t2 - t1, f"start{tag}": start, f"enough{tag}": bool(w.enough),
+            f"asis{tag}": float(w.as_is.error_std), f"rep{tag}": float(w.repaired.error_std),
+            f"rep_lo{tag}": float(w.repaired_interval.error_std[0]),
+            f"rep_hi{tag}": float(w.repaired_interval.error_std[1]), f"comp{tag}": float(w.compensated.error_std),
+            f"true_asis{tag}": true_asis, f"true_rep{tag}": true_rep, f"true_comp{tag}": true_comp,
+            f"true_travel_asis{tag}": travel(valve_t), f"true_travel_rep{tag}": travel(valve_l),
+            f"true_travel_comp{tag}": travel(valve_k), f"travel_comp{tag}": float(w.compensated.travel),
+            f"travel_asis{tag}": float(w.as_is.travel), f"pv_range{tag}": float(w.pv_range),
+            f"knocker{tag}": [float(w.knocker.amplitude), int(round(float(w.knocker.width))),
+                              int(w.knocker.period)],
+            f"objective{tag}": float(w.objective),
+        })
+    if oracle and case.plant() is not None:
+        w = jax.tree.map(np.asarray, whatif_model(case.plant(), loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan),
+                                                  wset))
+        _, pv_l, _, sp_t = case.truth(0.0, 0.0)
+        st = int(w.start)
+        out.update(oracle_rep=float(w.repaired.error_std),
+                   oracle_true_rep=float(np.std((sp_t - pv_l)[st:])) if st < len(sp_t) - 10 else float("nan"))
+    return out
+
+
+def summary(rows, designs) -> dict:
+    """The figures over the loops the what-if could read (`enough`, and a finite
+    truth over the same samples); `unusable` lists the others."""
+    res = {"unusable": seeds_text([r["seed"] for r in rows if not (r["enough"] and np.isfinite(r["true_rep"]))])}
+    rows = [r for r in rows if r["enough"] and np.isfinite(r["true_rep"])]
+    err = np.array([r["rep"] / r["true_rep"] - 1 for r in rows])
+    ok = np.abs(err) <= 0.15
+    res["repaired"] = dict(loops=len(rows), within_15=int(np.sum(ok)), share=float(np.mean(ok)),
+                           abs_error_min=float(np.nanmin(np.abs(err))),
+                           abs_error_median=float(np.nanmedian(np.abs(err))),
+                           missed=seeds_text([r["seed"] for r, o in zip(rows, ok) if not o]),
+                           interval_covers=int(sum(r["rep_lo"] <= r["true_rep"] <= r["rep_hi"] for r in rows)))
+    if "oracle_rep" in rows[0]:
+        oe = np.array([r["oracle_rep"] / r["oracle_true_rep"] - 1 for r in rows])
+        res["oracle"] = dict(within_15=int(np.sum(np.abs(oe) <= 0.15)),
+                             abs_error_median=float(np.nanmedian(np.abs(oe))))
+    pb = np.array([r["asis"] - r["rep"] for r in rows])
+    tb = np.array([r["true_asis"] - r["true_rep"] for r in rows])
+    rng_ = np.array([r["pv_range"] for r in rows])
+    res["ranking"] = dict(spearman_benefit=spearman(pb, tb), spearman_benefit_percent=spearman(pb / rng_, tb / rng_))
+    for design in designs:
+        tag = "" if design == "grid" else f"_{design}"
+        share = np.array([(r[f"true_asis{tag}"] - r[f"true_comp{tag}"]) / (r[f"true_asis{tag}"] - r[f"true_rep{tag}"])
+                          for r in rows])
+        extra = np.array([r[f"true_travel_comp{tag}"] / max(r[f"true_travel_asis{tag}"], 1e-12) for r in rows])
+        res[f"compensator{tag}"] = dict(
+            share_min=float(np.nanmin(share)), share_median=float(np.nanmedian(share)),
+            at_least_half=int(np.sum(share >= 0.5)), loops=len(rows),
+            missed=seeds_text([r["seed"] for r, s in zip(rows, share) if not s >= 0.5]),
+            travel_ratio_median=float(np.nanmedian(extra)), travel_ratio_max=float(np.nanmax(extra)),
+            objective_median=float(np.median([r[f"objective{tag}"] for r in rows])),
+            seconds_whatif_median=float(np.median([r[f"seconds_whatif{tag}"] for r in rows[1:]] or [np.nan])))
+    return res
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--set", choices=("concealed", "fleet"), default="concealed")
+    ap.add_argument("--seeds", type=seeds_arg, default=seeds_arg("0-23"))
+    ap.add_argument("--estimator", choices=("screen", "full"), default="screen")
+    ap.add_argument("--design", choices=("grid", "gradient", "both"), default="grid")
+    ap.add_argument("--no-oracle", action="store_true", help="skip the whatif of the true plant model")
+    ap.add_argument("--init-count", type=int, default=WhatIfSettings().init_count,
+                    help="WhatIfSettings.init_count (candidate initial valve states per direction)")
+    ap.add_argument("--pad", action="store_true",
+                    help="pad each loop to the screen's length bucket (masked), so loops of many lengths share a "
+                         "few compiled programs (the fleet)")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    settings = SCREEN_ESTIMATE if args.estimator == "screen" else Settings(use_spline=False)
+    designs = ("grid", "gradient") if args.design == "both" else (args.design,)
+    if args.set == "concealed":
+        cases = [Concealed(s) for s in args.seeds]
+    else:
+        cases = [Fleet(s, lp) for s, lp in zip(args.seeds, realistic_fleet(args.seeds, "stiction"))]
+    rows = []
+    for c in cases:
+        r = one_loop(c, settings, WhatIfSettings(init_count=args.init_count), not args.no_oracle, designs, args.pad)
+        rows.append(r)
+        if not args.json:
+            print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f} J {r['J']:5.2f}/"
+                  f"{r['J_fit']:5.2f}  start {r['start']:4d}  as-is {r['asis']:.3g}/{r['true_asis']:.3g}  repaired "
+                  f"{r['rep']:.3g} [{r['rep_lo']:.3g}, {r['rep_hi']:.3g}] / true {r['true_rep']:.3g} "
+                  f"({r['rep'] / r['true_rep'] - 1:+.1%})"
+                  + (f" oracle {r['oracle_rep'] / r['oracle_true_rep'] - 1:+.1%}" if "oracle_rep" in r else "")
+                  + f"  knocker {r['comp']:.3g}, true {r['true_comp']:.3g} (share "
+                  f"{(r['true_asis'] - r['true_comp']) / (r['true_asis'] - r['true_rep']):.2f}, travel x"
+                  f"{r['true_travel_comp'] / max(r['true_travel_asis'], 1e-12):.2f})"
+                  + "".join(f"  {d}: share {(r[f'true_asis_{d}'] - r[f'true_comp_{d}']) / (r[f'true_asis_{d}'] - r[f'true_rep_{d}']):.2f} obj {r[f'objective_{d}']:.3f} {r[f'seconds_whatif_{d}']:.2f}s"  # noqa: E501
+                            for d in designs if d != "grid")
+                  + f"  ({r['seconds_fit']:.1f} + {r['seconds_whatif']:.2f} s)", flush=True)
+    res = summary(rows, designs)
+    res["set"], res["estimator"], res["seeds"] = args.set, args.estimator, seeds_text(args.seeds)
+    res["init_count"] = args.init_count
+    if args.json:
+        print(json.dumps({"summary": res, "loops": rows}))
+    else:
+        print(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()

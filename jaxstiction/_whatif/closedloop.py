@@ -1,0 +1,270 @@
+r"""The loop closed again in simulation, and what to measure on it.
+
+`closed_loop` runs a fitted [`jaxstiction.LoopModel`][] under a
+[`jaxstiction.Controller`][] in one `lax.scan`: setpoint → controller (→ knocker)
+→ input chain (the valve) → process → + disturbance → PV, which the controller sees:
+
+$$PV(t) = \text{pv\_offset} + \frac{B(q)}{A(q)}\big(x(t) - \text{op\_offset}\big) + v(t),
+\qquad x = \text{chain}\big(u + k\big),$$
+
+with $u$ the controller's output and $k$ the knocker's pulses (0 without one).
+Started from a model's [`jaxstiction.InitialState`][] and with $u(0)$ the recorded
+OP, a model run under the disturbance $v = PV - \text{simulation of the recorded OP}$
+reproduces the record exactly when the controller is exact: the as-is loop *is* the
+record, and changing the valve changes only what the valve changes.
+
+A [`jaxstiction.Knocker`][] (Hägglund 2002) adds to OP pulses of amplitude $a$ and
+width $\tau$ samples every $h$ samples, each in the direction OP moved since the last
+pulse started. `SmoothKano` is Kano's valve with its thresholds made sigmoids, for
+gradients with respect to a compensator's parameters.
+
+`loop_stats` reads the numbers a plant engineer asks for off one run.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._blocks import _f, AbstractBlock
+from .._models import InitialState, LoopModel
+from .._verdict.indicators import dominant_period
+from .controller import Controller
+
+
+class Knocker(eqx.Module):
+    """Hägglund's (2002) knocker: pulses of `amplitude` (% of span) and `width`
+    samples every `period` samples, added to OP in the direction OP moved since the
+    previous pulse started (no pulse while it has not moved).
+
+    `soft` (static, samples): 0 for the exact pulse ($k \\ne 0$ while the phase is
+    below `width`); above 0 the pulse's edges are sigmoids of that width, so a
+    simulation is differentiable in `width` too (for `method="gradient"`)."""
+
+    amplitude: Float[Array, ""] = eqx.field(converter=_f)
+    width: Float[Array, ""] = eqx.field(converter=_f)
+    period: Array = eqx.field(converter=jnp.asarray)
+    soft: float = eqx.field(static=True, default=0.0)
+
+    def init(self, u0):
+        """`(sign, OP at the last pulse start)`."""
+        u0 = jnp.asarray(u0)
+        return jnp.zeros_like(u0), u0
+
+    def step(self, state, t, u):
+        """`(state, pulse)` at sample `t` for controller output `u`."""
+        sign, u_last = state
+        phase = jnp.mod(t, self.period)
+        start = phase == 0
+        moved = jnp.sign(u - u_last)
+        sign = jnp.where(start & (moved != 0), moved, sign)
+        u_last = jnp.where(start, u, u_last)
+        edge = self.width - phase.astype(u.dtype) - 0.5
+        on = jax.nn.sigmoid(edge / self.soft) if self.soft > 0 else (edge > 0).astype(u.dtype)
+        return (sign, u_last), self.amplitude * sign * on
+
+
+class SmoothKano(AbstractBlock):
+    """[`jaxstiction.Kano`][] with its decisions made smooth: each threshold test
+    (stop, reverse past `S`, slip past `J`) is a sigmoid of width `eps` (% of span)
+    and the state (stuck share, direction) is continuous. As `eps` → 0 it is Kano's
+    valve; for `eps` > 0 a closed-loop simulation through it has gradients with
+    respect to what drives it (a compensator's amplitude), where Kano's valve has
+    none across its slip events."""
+
+    S: Float[Array, ""] = eqx.field(converter=_f)
+    J: Float[Array, ""] = eqx.field(converter=_f)
+    eps: Float[Array, ""] = eqx.field(converter=_f)
+
+    def init(self, u0):
+        u0 = jnp.asarray(u0)
+        one = jnp.ones_like(u0)
+        return (u0, u0, one, one, u0, jnp.zeros_like(u0))
+
+    def step(self, state, u):
+        S, J, eps = self.S, self.J, self.eps
+        y, us, stp, d, u_prev, du_prev = state
+        du = u - u_prev
+        sig = jax.nn.sigmoid
+        stops = sig(-du * du_prev / eps**2) * (1.0 - stp)
+        us = us + stops * (u_prev - us)
+        stp = stp + stops
+        reverse = stp * sig((-d * (u - us) - S) / eps)
+        same = (stp - reverse) * sig((d * (u - us) - J) / eps)
+        d = d * (1.0 - 2.0 * reverse)
+        go = (1.0 - stp) + reverse + same
+        y = go * (u - d * (S - J) / 2) + (1.0 - go) * y
+        stp = stp - reverse - same
+        return (y, us, stp, d, u, du), y
+
+    def initial_states(self, u_open, count: int):
+        return jax.tree.map(lambda t: jnp.asarray(t)[None], self.init(jnp.asarray(u_open)[0]))
+
+
+class ClosedLoopRun(eqx.Module):
+    """One closed-loop simulation: the controller output `op`, what reached the valve
+    `op_valve` (OP plus the knocker's pulses, clipped), the `valve` position (the
+    output of the model's first block, the stem, in % of span) and `pv`."""
+
+    op: Float[Array, " time"]
+    op_valve: Float[Array, " time"]
+    valve: Float[Array, " time"]
+    pv: Float[Array, " time"]
+
+
+def closed_loop(model: LoopModel, controller: Controller, sp: Float[Array, " time"],
+                disturbance: Float[Array, " time"], initial: InitialState, op0,
+                knocker: Knocker | None = None) -> ClosedLoopRun:
+    """`model` run in closed loop under `controller` (and `knocker`) with setpoint
+    `sp` and `disturbance` added to PV (see the module notes).
+
+    The model starts from `initial` (its chain's states, the held valve position, the
+    process filter's state); the controller's output at the first sample is `op0`
+    (the recorded OP), with the error before the record taken as the first one.
+    Pure; vmappable over models, controllers, knockers and signals; differentiable
+    where the valve is (`SmoothKano`). The process must be strictly proper (b[0] =
+    0), as every fitted model is."""
+    dtype = jnp.result_type(sp.dtype, jnp.float32)
+    sp, disturbance = jnp.asarray(sp, dtype), jnp.asarray(disturbance, dtype)
+    b, a = model.process.polynomials()
+    b, a = b.astype(dtype), a.astype(dtype)
+    off = jnp.asarray(model.op_offset, dtype)
+    pv_off = jnp.asarray(model.pv_offset, dtype)
+    chain = tuple(model.chain)
+    lo, hi = controller.op_limits[0], controller.op_limits[1]
+    kp, ki, lag = controller.kp, controller.ki, controller.lag
+    z0 = jnp.asarray(initial.filter, dtype)
+    op0 = jnp.asarray(op0, dtype)
+    e0 = sp[0] - (z0[0] + pv_off + disturbance[0])
+    kstate0 = knocker.init(op0) if knocker is not None else ()
+
+    def body(carry, inputs):
+        u1, e1, e2, cs, z, holding, first, ks = carry
+        t, r, v = inputs
+        y = z[0]
+        pv = y + pv_off + v
+        e = r - pv
+        el, el1 = jnp.where(lag == 1, e1, e), jnp.where(lag == 1, e2, e1)
+        u = jnp.clip(u1 + kp * (el - el1) + ki * el, lo, hi)
+        if knocker is not None:
+            ks, k = knocker.step(ks, t, u)
+            uv = jnp.clip(u + k, lo, hi)
+        else:
+            uv = u
+        new, x, stem = [], uv, uv
+        for i, (blk, s) in enumerate(zip(chain, cs)):
+            s, x = blk.step(s, x)
+            new.append(s)
+            if i == 0:
+                stem = x
+        # a valve held at an unknown position at the start stays there until the
+        # chain's output first changes (as `LoopModel.simulate`)
+        first = jnp.where(t == 0, x, first)
+        holding = holding & (x == first)
+        x = jnp.where(holding, initial.hold, x)
+        z = jnp.concatenate([z[1:], jnp.zeros((1,), dtype)]) + b[1:] * (x - off) - a[1:] * y
+        return (u, e, e1, tuple(new), z, holding, first, ks), (u, uv, stem, pv)
+
+    n = sp.shape[0]
+    carry = (op0 - ki * e0, e0, e0, tuple(initial.chain), z0, jnp.asarray(initial.held, bool),
+             jnp.zeros((), dtype), kstate0)
+    _, (u, uv, stem, pv) = jax.lax.scan(body, carry, (jnp.arange(n), sp, disturbance))
+    return ClosedLoopRun(op=u, op_valve=uv, valve=stem, pv=pv)
+
+
+class LoopStats(eqx.Module):
+    """What one run (or the record) shows, over the real samples:
+
+    - `error_std`, `error_ptp`: standard deviation and peak-to-peak of SP − PV
+      (engineering units; SP at its mean when none is recorded, so the PV's);
+    - `pv_std`, `pv_ptp`: the same of PV itself (setpoint moves included);
+    - `amplitude`, `period`: the oscillation of SP − PV: the period (samples) of its
+      strongest component (`dominant_period`) and the amplitude of the sine that
+      carries the power within a factor 1.5 of that frequency,
+      $\\sqrt{2\\,\\text{share}}\\;\\sigma_e$;
+    - `travel`: valve travel, the sum of |Δ valve|, in % of span per hour;
+    - `reversals`: valve reversals per hour (moves of more than the threshold
+      against the previous direction of travel).
+    """
+
+    error_std: Float[Array, ""]
+    error_ptp: Float[Array, ""]
+    pv_std: Float[Array, ""]
+    pv_ptp: Float[Array, ""]
+    amplitude: Float[Array, ""]
+    period: Float[Array, ""]
+    travel: Float[Array, ""]
+    reversals: Float[Array, ""]
+
+
+def count_reversals(x: Float[Array, " time"], w: Float[Array, " time"], threshold) -> Float[Array, ""]:
+    """Reversals of `x` over the samples with `w > 0`: moves of more than
+    `threshold` back from the furthest point reached in the current direction (the
+    first such move sets a direction and is not counted)."""
+
+    def step(carry, xw):
+        d, ext, count = carry
+        xt, wt = xw
+        ext = jnp.where(d > 0, jnp.maximum(ext, xt), jnp.where(d < 0, jnp.minimum(ext, xt), ext))
+        up, down = xt > ext + threshold, xt < ext - threshold
+        new_d = jnp.where(d > 0, jnp.where(down, -1.0, d), jnp.where(d < 0, jnp.where(up, 1.0, d),
+                                                                    jnp.where(up, 1.0, jnp.where(down, -1.0, d))))
+        turned = (new_d != d) & (d != 0)
+        ext = jnp.where(new_d != d, xt, ext)
+        keep = wt > 0
+        return (jnp.where(keep, new_d, d), jnp.where(keep, ext, carry[1]), count + keep * turned), None
+
+    zero = jnp.zeros((), x.dtype)
+    (_, _, count), _ = jax.lax.scan(step, (zero, x[0], zero), (x, w))
+    return count
+
+
+def loop_stats(pv, sp_stat, valve, mask, ts, threshold) -> LoopStats:
+    """`LoopStats` of one run: `pv`, the setpoint the error is measured against
+    `sp_stat`, the `valve` position, `mask` (real samples) and the sampling time
+    `ts` (s). Pure and vmappable."""
+    w = (mask > 0).astype(pv.dtype)
+    count = jnp.maximum(jnp.sum(w), 1.0)
+    hours = count * ts / 3600.0
+    big = jnp.finfo(pv.dtype).max
+
+    def std_ptp(x):
+        m = jnp.sum(w * x) / count
+        s = jnp.sqrt(jnp.sum(w * (x - m) ** 2) / count)
+        return s, jnp.max(jnp.where(w > 0, x, -big)) - jnp.min(jnp.where(w > 0, x, big))
+
+    e = (sp_stat - pv) * w
+    e_std, e_ptp = std_ptp(e)
+    pv_std, pv_ptp = std_ptp(pv)
+    period, share = dominant_period(e, w)
+    amplitude = jnp.sqrt(2.0 * share) * e_std
+    pair = w[1:] * w[:-1]
+    travel = jnp.sum(pair * jnp.abs(jnp.diff(valve))) / hours
+    reversals = count_reversals(valve, w, threshold) / hours
+    return LoopStats(error_std=e_std, error_ptp=e_ptp, pv_std=pv_std, pv_ptp=pv_ptp, amplitude=amplitude,
+                     period=period, travel=travel, reversals=reversals)
+
+
+def settling_time(model: LoopModel, controller: Controller, op0, n: int, tolerance: float = 0.05) -> Array:
+    """Samples the loop takes to forget how it started: the later of its settling
+    after a step disturbance at its output and after an offset of its OP (a start
+    whose controller output or process state differs from the truth's is both). Each
+    is the last sample (of `n`) at which the control error is above `tolerance` of
+    its peak, plus one (`n` for a loop that does not settle within `n`). The loop
+    starts at rest at OP `op0` with the setpoint at its PV; the steps are small
+    (1e-6), so OP limits stay out of play."""
+    dtype = jnp.result_type(op0, jnp.float32)
+    initial = model.rest_state(jnp.full((n,), op0, dtype))
+    sp = jnp.full((n,), initial.filter[0] + model.pv_offset, dtype)
+    step = jnp.where(jnp.arange(n) >= 1, 1e-6, 0.0).astype(dtype)
+
+    def last_late(run):
+        e = jnp.abs(run.pv - sp)
+        late = ~(e <= tolerance * jnp.max(e))  # NaN (a loop that runs away) is late too
+        return jnp.max(jnp.where(late, jnp.arange(n) + 1, 0)).astype(jnp.int32)
+
+    output = closed_loop(model, controller, sp, step, initial, op0)
+    offset = closed_loop(model, controller, sp, jnp.zeros((n,), dtype), initial, op0 + 1e-6)
+    return jnp.maximum(last_late(output), last_late(offset))

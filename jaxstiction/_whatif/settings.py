@@ -1,0 +1,123 @@
+"""Settings of [`jaxstiction.whatif`][] and [`jaxstiction.compensate`][] (a leaf:
+the room's modules import their settings from here, and nothing here imports them).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+
+from .._checks import check_counts
+
+
+class KnockerGrid(eqx.Module):
+    """The knocker parameters [`jaxstiction.compensate`][] searches (static: they fix
+    the grid's shape).
+
+    - `amplitudes`: pulse amplitudes as multiples of the fitted band S (the OP step
+      that moves a stuck valve either way is at most S), so one grid serves valves of
+      any size;
+    - `widths`: pulse widths, in samples;
+    - `periods`: pulse periods, in samples (pairs with a period shorter than twice
+      the width are left out: a knocker whose pulses touch is a bias, not a knock).
+    """
+
+    amplitudes: tuple = eqx.field(static=True, default=(0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0, 1.3))
+    widths: tuple = eqx.field(static=True, default=(1, 2, 3))
+    periods: tuple = eqx.field(static=True, default=(2, 3, 4, 5, 6, 8, 10, 14, 20))
+
+    def __check_init__(self):
+        if not self.amplitudes or any(not (isinstance(a, (int, float)) and a > 0) for a in self.amplitudes):
+            raise ValueError(f"`KnockerGrid.amplitudes` must be positive numbers, got {self.amplitudes!r}")
+        for name in ("widths", "periods"):
+            v = getattr(self, name)
+            if not v or any(isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in v):
+                raise ValueError(f"`KnockerGrid.{name}` must be whole numbers >= 1, got {v!r}")
+        if not self.points():
+            raise ValueError("`KnockerGrid` has no (width, period) pair with period >= 2 x width")
+
+    def points(self) -> tuple[tuple[float, int, int], ...]:
+        """Every `(amplitude factor, width, period)` of the grid."""
+        return tuple((a, w, h) for a in self.amplitudes for w in self.widths for h in self.periods if h >= 2 * w)
+
+
+class CompensateSettings(eqx.Module):
+    """How [`jaxstiction.compensate`][] designs a knocker on the identified closed loop.
+
+    - `grid`: the [`jaxstiction.KnockerGrid`][] searched (`method="grid"`, the default,
+      and the starts of `method="gradient"`).
+    - `travel_weight`: the design minimises
+      $\\sigma_e / \\sigma_{e,\\text{as is}} + w\\,T / T_{\\text{as is}}$, with
+      $\\sigma_e$ the standard deviation of SP − PV and $T$ the valve travel: each
+      doubling of the travel costs as much as $w$ of the as-is variability (wear is
+      the knocker's price). 0: variability alone.
+    - `method`: `"grid"` (every grid point simulated with the Kano valve, in one
+      vmapped closed-loop run) or `"gradient"` (gradient descent on amplitude and a
+      continuous width, through a smoothed Kano valve, from `gradient_starts` periods
+      spread over the grid's, at its median amplitude and width 1; `gradient_steps`
+      Adam steps, `smooth` the smoothing width in % of
+      span; the result is scored on the exact valve).
+    """
+
+    grid: KnockerGrid = KnockerGrid()
+    travel_weight: float = eqx.field(static=True, default=0.05)
+    method: str = eqx.field(static=True, default="grid")
+    gradient_starts: int = eqx.field(static=True, default=4)
+    gradient_steps: int = eqx.field(static=True, default=60)
+    gradient_rate: float = eqx.field(static=True, default=0.05)
+    smooth: float = eqx.field(static=True, default=0.05)
+
+    def __check_init__(self):
+        check_counts(self, positive=("gradient_starts", "gradient_steps"))
+        if self.method not in ("grid", "gradient"):
+            raise ValueError(f"`CompensateSettings.method` must be 'grid' or 'gradient', got {self.method!r}")
+        if not self.travel_weight >= 0:
+            raise ValueError(f"`CompensateSettings.travel_weight` must be >= 0, got {self.travel_weight!r}")
+        if not (self.smooth > 0 and self.gradient_rate > 0):
+            raise ValueError("`CompensateSettings.smooth` and `gradient_rate` must be > 0, got "
+                             f"{self.smooth!r} and {self.gradient_rate!r}")
+
+
+class WhatIfSettings(eqx.Module):
+    """Settings of [`jaxstiction.whatif`][] (static).
+
+    - `draws`: models drawn to carry the uncertainty of S, J and the process into the
+      intervals (S and J uniform on their intervals, the process coefficients from
+      their asymptotic normal distribution; a draw the record rejects is dropped);
+      0: no intervals.
+    - `level`: the intervals' coverage (their ends are the quantiles of the kept
+      draws and the fit), and the level of the test that keeps a draw.
+    - `init_count`: candidate stopping points per direction of the Kano valve when
+      the initial state of each model is estimated from the record. With too few, a
+      valve whose hidden state at the start (where it stuck, which way it last
+      moved) no candidate shares slips at the wrong time in the replay, which the
+      disturbance then carries as a spurious step.
+    - `reversal_threshold`: a valve reverses when it has moved more than this (% of
+      span) against its previous direction of travel; smaller moves are not counted
+      (as a positioner's reversal counter ignores its own resolution).
+    - `min_controller_fit`: below this share of ΔOP explained, the identified
+      controller gets a note (a historian may have compressed PV, or the
+      controller is not a PI).
+    - `min_samples`: fewest samples to read the numbers from: when the valve's
+      unknown start and the repaired loop's settling leave fewer, the last
+      `min_samples` samples after the valve's start are read (and the `whatif` note
+      says so); when the valve's start alone leaves fewer, the numbers are null
+      (see [`jaxstiction.WhatIf`][]).
+    - `compensate`: [`jaxstiction.CompensateSettings`][] of the knocker design.
+    - `seed`: of the draws.
+    """
+
+    draws: int = eqx.field(static=True, default=24)
+    level: float = eqx.field(static=True, default=0.9)
+    init_count: int = eqx.field(static=True, default=32)
+    reversal_threshold: float = eqx.field(static=True, default=0.1)
+    min_controller_fit: float = eqx.field(static=True, default=0.8)
+    min_samples: int = eqx.field(static=True, default=200)
+    compensate: CompensateSettings = CompensateSettings()
+    seed: int = eqx.field(static=True, default=0)
+
+    def __check_init__(self):
+        check_counts(self, positive=("init_count",), nonnegative=("draws", "seed", "min_samples"))
+        if not 0.0 < self.level < 1.0:
+            raise ValueError(f"`WhatIfSettings.level` must be in (0, 1), got {self.level!r}")
+        if not self.reversal_threshold >= 0:
+            raise ValueError(f"`WhatIfSettings.reversal_threshold` must be >= 0, got {self.reversal_threshold!r}")
