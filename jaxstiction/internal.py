@@ -46,6 +46,7 @@ from ._diagnose.settings import (
     INPUT_FAMILIES as INPUT_FAMILIES,
     JOINT_ESTIMATE as JOINT_ESTIMATE,
     OUTPUT_FAMILIES as OUTPUT_FAMILIES,
+    REJECTION_RULES as REJECTION_RULES,
 )
 from ._estimate import programs as programs
 from ._estimate.estimate import (
