@@ -1,0 +1,119 @@
+"""The random concealed-case generator (`benchmarks/concealed.py`, issue 46): its
+draws stay in their ranges, are deterministic, keep the linear loop stable, and hand
+`diagnose` the plant without the hidden effect as the nominal model. No diagnosis
+runs here (the power benchmark does that)."""
+
+import collections
+import math
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+import concealed  # noqa: E402
+
+
+SEEDS = range(200)
+
+
+@pytest.fixture(scope="module")
+def draws():
+    return {s: concealed.draw_params(s) for s in SEEDS}
+
+
+def test_draws_are_deterministic(draws):
+    assert concealed.draw_params(7) == draws[7]
+    assert concealed.draw_params(8) != draws[7]
+
+
+def test_draws_stay_in_their_ranges(draws):
+    r = concealed.DEFAULT_RANGES
+    kinds = collections.Counter(len(p["effects"]) for p in draws.values())
+    for p in draws.values():
+        eff = p["effects"]
+        assert p["n"] in r["lengths"]
+        assert r["operating_point"][0] <= p["op0"] <= r["operating_point"][1]
+        assert r["nsr"][0] <= p["nsr"] <= r["nsr"][1]
+        assert p["closed_loop_radius"] < concealed.STABLE_RADIUS
+        assert p["b"][0] == 0.0 and math.isclose(sum(p["b"]) / sum(p["a"]), p["gain"])
+        if len(eff) == 2:
+            assert eff[0] in concealed.INPUT_EFFECTS and eff[1] == "external_oscillation"
+        if "stiction" in p:
+            S, J = p["stiction"]["S"], p["stiction"]["J"]
+            assert r["stiction_S"][0] <= S <= r["stiction_S"][1] and 0 < J < S
+        if "deadband" in p:
+            assert r["deadband"][0] <= p["deadband"]["width"] <= r["deadband"][1]
+        if "dead_time" in p:
+            assert 1 <= p["dead_time"]["samples"] <= 10
+        if "actuator_lag" in p:
+            assert 0.5 <= p["actuator_lag"]["a"] <= 0.95
+        if "external_oscillation" in p:
+            assert 10 <= p["external_oscillation"]["period"] <= 100
+        if "valve_characteristic" in p:
+            assert 3 <= p["valve_characteristic"]["R"] <= 50
+    # every effect, nothing, and pairs all occur in 200 draws
+    seen = {e for p in draws.values() for e in p["effects"]}
+    assert seen == set(concealed.EFFECTS)
+    assert kinds[0] > 10 and kinds[2] > 5
+
+
+def _linear_loop_peak(b, a, k0, k1, delay=0, n=400):
+    """Largest |PV| late in a unit-setpoint-step run of the linear PI loop (numpy)."""
+    b = np.concatenate([np.zeros(delay), b])
+    u, y, e = np.zeros(n), np.zeros(n), np.zeros(n)
+    for t in range(n):
+        y[t] = sum(b[i] * u[t - i] for i in range(1, len(b)) if t - i >= 0) - sum(
+            a[i] * y[t - i] for i in range(1, len(a)) if t - i >= 0)
+        e[t] = 1.0 - y[t]
+        u[t] = (u[t - 1] if t else 0.0) + k0 * e[t] + k1 * (e[t - 1] if t else 0.0)
+    return float(np.max(np.abs(y[n // 2:])))
+
+
+def test_the_closed_loop_radius_matches_a_simulation():
+    # a PI loop the radius calls stable settles on the setpoint, one it calls unstable grows
+    b, a = np.array([0.0, 1.0, 0.5]), np.array([1.0, -1.5, 0.7])
+    assert concealed.closed_loop_radius(b, a, 0.06, -0.05) < 1.0
+    assert _linear_loop_peak(b, a, 0.06, -0.05) < 1.1
+    assert concealed.closed_loop_radius(b, a, 0.31, -0.3, delay=3) > 1.0
+    assert _linear_loop_peak(b, a, 0.31, -0.3, delay=3) > 10.0
+
+
+def test_drawn_controllers_keep_the_loop_stable(draws):
+    # the radius a draw records is the one its own numbers give, hidden dynamics in
+    for s in (p for p in draws.values() if "dead_time" in p or "actuator_lag" in p):
+        delay = s.get("dead_time", {}).get("samples", 0)
+        lag = s.get("actuator_lag", {}).get("a", 0.0)
+        r = concealed.closed_loop_radius(np.asarray(s["b"]), np.asarray(s["a"]), *s["kc"], delay=delay, lag=lag)
+        assert r <= s["closed_loop_radius"] + 1e-9 and r < concealed.STABLE_RADIUS
+
+
+def test_an_oscillation_is_sized_against_the_effect_free_noise():
+    # the noise level is kept when the oscillation enters the PV: the measured
+    # amplitude over the record's noise std is the drawn one
+    seed = next(s for s in range(400) if concealed.draw_params(s)["effects"] == ["external_oscillation"])
+    case = concealed.build(seed)
+    drawn = case.params["external_oscillation"]["amplitude_rel"]
+    assert case.size == pytest.approx(drawn, rel=0.05)
+    assert case.nominal.output == () and len(case.plant.output) == 1
+
+
+def test_a_calibrated_valve_has_unit_slope_at_the_operating_point():
+    seed = next(s for s in range(400) if "valve_characteristic" in concealed.draw_params(s)
+                and concealed.draw_params(s)["valve_characteristic"]["calibrated"]
+                and len(concealed.draw_params(s)["effects"]) == 1)
+    case = concealed.build(seed)
+    op0 = case.params["op0"]
+    x = np.array([op0 - 0.01, op0, op0 + 0.01])
+    # the process input the plant sees near OP0 equals the nominal's to first order
+    plant = np.asarray(case.plant.valve(x)) - float(case.plant.op_offset)
+    plant = plant * float(np.sum(case.plant.process.b)) / float(np.sum(case.nominal.process.b))
+    nominal = x - float(case.nominal.op_offset)
+    assert np.allclose(plant, nominal, atol=1e-5)
+    # the nominal is the plant without the hidden block: same poles and noise, linear valve
+    assert case.nominal.chain == () and case.nominal.output == ()
+    assert np.allclose(case.nominal.process.a, case.plant.process.a)
+    assert np.allclose(case.nominal.noise.d, case.plant.noise.d)
+    assert len(case.loop.op) == case.n
