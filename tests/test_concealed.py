@@ -117,3 +117,64 @@ def test_a_calibrated_valve_has_unit_slope_at_the_operating_point():
     assert np.allclose(case.nominal.process.a, case.plant.process.a)
     assert np.allclose(case.nominal.noise.d, case.plant.noise.d)
     assert len(case.loop.op) == case.n
+
+
+# ------------------------------------------------- the power benchmark's tables
+
+
+def _run(effects, size, right, findings=()):
+    return {"effects": list(effects), "size": size, "right": right, "findings": list(findings)}
+
+
+def test_power_table_names_the_smallest_size_right_in_ninety_percent():
+    import diagnose_power as dp
+
+    # stiction bins 0.5-2, 2-4, 4-7, >=7: the first misses, the rest are right
+    runs = ([_run(["stiction"], 1.0, k < 3) for k in range(10)] + [_run(["stiction"], 3.0, True)] * 10
+            + [_run(["stiction"], 5.0, k != 0) for k in range(10)] + [_run(["stiction"], 8.0, True)] * 5)
+    row = dp.power_table(runs)["stiction"]
+    assert row["bins"] == [("0.5-2", 3, 10), ("2-4", 10, 10), ("4-7", 9, 10), (">=7", 5, 5)]
+    assert row["detectable_from"] == 2.0 and (row["right"], row["n"]) == (27, 35)
+    # one bin above the first under 90 % moves the threshold past it
+    runs += [_run(["stiction"], 8.0, False)] * 2
+    assert dp.power_table(runs)["stiction"]["detectable_from"] is None
+    # pairs are not counted in the single-effect curve
+    assert dp.power_table([_run(["stiction", "external_oscillation"], 3.0, True)])["stiction"]["n"] == 0
+
+
+def test_the_audit_counts_what_each_rule_removed():
+    import diagnose_power as dp
+
+    def f(effect, why, failed=None, accepted=False):
+        return {"effect": effect, "accepted": accepted, "rejected_by": why, "rules_failed": failed}
+
+    runs = [_run(["deadband"], 3.0, True, [f("deadband", None, accepted=True), f("stiction", "stiction_vs_deadband"),
+                                          f("actuator_lag", "alternative"), f("drift", "significance")]),
+            _run([], None, True, [f("deadband", "gain_over_level", ["gain_over_level"]),
+                                  f("stiction", "gain_over_level",
+                                    ["gain_over_level", "gain_over_linear_under_drift"])]),
+            _run(["valve_characteristic"], 20.0, False, [f("valve_characteristic", "gain_over_level",
+                                                           ["gain_over_level"])])]
+    aud = dp.audit(runs)
+    assert "significance" not in aud  # the acceptance test itself is not audited
+    assert aud["stiction_vs_deadband"] == {"false": 1, "false_alone": 1}
+    assert aud["alternative"] == {"false": 1, "false_alone": 1}
+    assert aud["gain_over_level"] == {"false": 2, "false_alone": 1, "true": 1, "true_alone": 1}
+
+
+def test_a_draw_is_named_right_only_with_what_it_hides():
+    from types import SimpleNamespace as NS
+
+    def d(verdict, *accepted):
+        return NS(verdict=verdict, findings=[NS(effect=e, accepted=True) for e in accepted])
+
+    def case(*effects):
+        return NS(effects=effects, effect=effects[0] if effects else "none")
+
+    assert concealed.right(case(), d("none"))
+    assert not concealed.right(case(), d("drift", "drift"))
+    assert concealed.right(case("stiction", "external_oscillation"),
+                           d("stiction", "stiction", "external_oscillation"))
+    assert not concealed.right(case("stiction", "external_oscillation"), d("stiction", "stiction"))
+    assert not concealed.right(case("quantization"), d("quantization", "quantization", "stiction"))
+    assert not concealed.right(case("dead_time"), d("actuator_lag", "actuator_lag"))
