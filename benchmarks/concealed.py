@@ -97,6 +97,8 @@ SIZES = {"stiction": "S (%)", "deadband": "width (%)", "dead_time": "extra dead 
 DEFAULT_RANGES = {
     # what a draw hides: probabilities of nothing, of two effects, the rest one effect
     "p_none": 0.15, "p_pair": 0.10,
+    # or a fixed choice: "none", one effect, or "effect+external_oscillation"
+    "only": None,
     # the plant and its operation
     "pole_radius": (0.6, 0.9), "pole_angle": (0.0, 0.5), "zero_ratio": (0.0, 0.8), "gain": (2.0, 10.0),
     "kp_loop": (0.15, 0.6), "ki_loop": (0.03, 0.15), "op_excursion": (3.0, 8.0), "switch_prob": (0.02, 0.05),
@@ -175,8 +177,11 @@ def _model(b, a, d, op_offset, chain=(), output=()) -> LoopModel:
 
 
 def _pick(rng, r):
-    """What a draw hides: `()`, one effect, or an input effect and an oscillation."""
+    """What a draw hides: `()`, one effect, or an input effect and an oscillation
+    (`r["only"]` fixes it)."""
     u = rng.uniform()
+    if r.get("only") is not None:
+        return () if r["only"] == "none" else tuple(r["only"].split("+"))
     if u < r["p_none"]:
         return ()
     if u < r["p_none"] + r["p_pair"]:

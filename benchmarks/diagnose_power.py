@@ -5,6 +5,7 @@ right effect is named against its size, with false discoveries alongside.
     python benchmarks/diagnose_power.py --seeds 0-49 --save runs.jsonl
     python benchmarks/diagnose_power.py --load runs.jsonl --plot power.png   # tables from saved runs
     python benchmarks/diagnose_power.py --seeds 0-99 --lengths 2000          # 2000-sample records only
+    python benchmarks/diagnose_power.py --seeds 0-99 --only none             # effect-free draws only
 
 Each draw is `concealed.build(seed)` (see `benchmarks/concealed.py`: one hidden
 effect of a drawn size, an input effect and an external oscillation, or nothing, in
@@ -154,13 +155,17 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=seeds_arg, default=list(concealed.README_SEEDS), help="e.g. 1000-1199 or 3,5,7")
     p.add_argument("--lengths", default=None, help="record lengths drawn from, e.g. 2000 (default 1500,2000,3000)")
+    p.add_argument("--only", default=None, help="every draw hides this: none, an effect, or e.g. "
+                   "stiction+external_oscillation (default: drawn)")
     p.add_argument("--save", default=None, help="append each draw's result to this JSON-lines file as it finishes")
     p.add_argument("--load", default=None, help="make the tables from a saved JSON-lines file; diagnose nothing")
     p.add_argument("--plot", default=None, help="write the power curves to this PNG")
     p.add_argument("--target", type=float, default=0.9)
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    ranges = {"lengths": tuple(int(v) for v in args.lengths.split(","))} if args.lengths else None
+    ranges = {"lengths": tuple(int(v) for v in args.lengths.split(","))} if args.lengths else {}
+    if args.only:
+        ranges["only"] = args.only
     t0 = time.time()
     if args.load:
         with open(args.load) as fh:

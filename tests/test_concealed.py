@@ -178,3 +178,11 @@ def test_a_draw_is_named_right_only_with_what_it_hides():
     assert not concealed.right(case("stiction", "external_oscillation"), d("stiction", "stiction"))
     assert not concealed.right(case("quantization"), d("quantization", "quantization", "stiction"))
     assert not concealed.right(case("dead_time"), d("actuator_lag", "actuator_lag"))
+
+
+def test_a_fixed_choice_of_effect():
+    assert all(concealed.draw_params(s, {"only": "none"})["effects"] == [] for s in range(20))
+    p = concealed.draw_params(3, {"only": "dead_time"})
+    assert p["effects"] == ["dead_time"] and 1 <= p["dead_time"]["samples"] <= 10
+    p = concealed.draw_params(3, {"only": "stiction+external_oscillation"})
+    assert p["effects"] == ["stiction", "external_oscillation"] and "period" in p["external_oscillation"]
