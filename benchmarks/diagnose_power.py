@@ -3,7 +3,7 @@ right effect is named against its size, with false discoveries alongside.
 
     python benchmarks/diagnose_power.py                          # the docs' 200 draws (seeds 1000-1199)
     python benchmarks/diagnose_power.py --seeds 0-49 --save runs.jsonl
-    python benchmarks/diagnose_power.py --load runs.jsonl --plot power.png   # tables from saved runs
+    python benchmarks/diagnose_power.py --load runs.jsonl,none.jsonl --plot power.png   # tables from saved runs
     python benchmarks/diagnose_power.py --seeds 0-99 --lengths 2000          # 2000-sample records only
     python benchmarks/diagnose_power.py --seeds 0-99 --only none             # effect-free draws only
 
@@ -120,6 +120,7 @@ def plot(runs, table, fdr, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, NullFormatter
 
     fig, axes = plt.subplots(3, 3, figsize=(9.5, 7.5), sharey=True)
     for ax, eff in zip(axes.flat, concealed.EFFECTS):
@@ -129,17 +130,20 @@ def plot(runs, table, fdr, path):
         ax.scatter(xs, ys, s=9, c=["tab:green" if r["right"] else "tab:red" for r in rs], alpha=0.6, lw=0)
         edges = list(BINS[eff])
         hi = max(xs + [edges[-1] * 1.5]) if xs else edges[-1] * 1.5
+        log = eff in ("valve_characteristic", "external_oscillation", "drift", "quantization")
         cx, cy = [], []
         for k, (_, ok, n) in enumerate(table[eff]["bins"]):
             if n:
                 right_edge = edges[k + 1] if k + 1 < len(edges) else hi
-                cx.append(0.5 * (edges[k] + right_edge))
+                cx.append((edges[k] * right_edge) ** 0.5 if log else 0.5 * (edges[k] + right_edge))
                 cy.append(ok / n)
                 ax.text(cx[-1], ok / n + 0.05, f"{ok}/{n}", ha="center", fontsize=7)
         ax.plot(cx, cy, "o-", color="tab:blue")
         ax.axhline(0.9, color="grey", ls=":", lw=1)
-        if eff in ("valve_characteristic", "external_oscillation", "drift", "quantization"):
+        if log:
             ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_title(eff.replace("_", " "), fontsize=9)
         ax.set_xlabel(concealed.SIZES[eff], fontsize=8)
         ax.tick_params(labelsize=7)
@@ -158,7 +162,8 @@ def main():
     p.add_argument("--only", default=None, help="every draw hides this: none, an effect, or e.g. "
                    "stiction+external_oscillation (default: drawn)")
     p.add_argument("--save", default=None, help="append each draw's result to this JSON-lines file as it finishes")
-    p.add_argument("--load", default=None, help="make the tables from a saved JSON-lines file; diagnose nothing")
+    p.add_argument("--load", default=None,
+                   help="make the tables from saved JSON-lines files (comma-separated); diagnose nothing")
     p.add_argument("--plot", default=None, help="write the power curves to this PNG")
     p.add_argument("--target", type=float, default=0.9)
     p.add_argument("--json", action="store_true")
@@ -168,8 +173,10 @@ def main():
         ranges["only"] = args.only
     t0 = time.time()
     if args.load:
-        with open(args.load) as fh:
-            runs = [json.loads(line) for line in fh if line.strip()]
+        runs = []
+        for path in args.load.split(","):
+            with open(path) as fh:
+                runs += [json.loads(line) for line in fh if line.strip()]
     else:
         # in order of record length: one length's programs are compiled once
         order = sorted(args.seeds, key=lambda s: (concealed.draw_params(s, ranges)["n"], s))
@@ -192,7 +199,12 @@ def main():
     pairs = [r for r in runs if len(r["effects"]) == 2]
     aud = audit(runs)
     secs = [r["seconds"] for r in runs]
-    out = {"seeds": seeds_text(sorted(r["seed"] for r in runs)), "draws": len(runs), "power": table,
+    valves = [r for r in runs if r["effects"] == ["valve_characteristic"]]
+    cal = [r for r in valves if r["params"]["valve_characteristic"]["calibrated"]]
+    moved = [r for r in valves if not r["params"]["valve_characteristic"]["calibrated"]]
+    out = {"valves_calibrated_right": [sum(r["right"] for r in cal), len(cal)],
+           "valves_moving_op_right": [sum(r["right"] for r in moved), len(moved)],
+           "seeds": seeds_text(sorted(r["seed"] for r in runs)), "draws": len(runs), "power": table,
            "false_discoveries": list(fdr), "false_discovery_seeds": [r["seed"] for r in none if r["verdict"] != "none"],
            "pairs_right": [sum(r["right"] for r in pairs), len(pairs)], "audit": aud,
            "right": [sum(r["right"] for r in runs), len(runs)],
@@ -213,6 +225,9 @@ def main():
         cells = " | ".join(f"{lab}: {ok}/{n}" for lab, ok, n in row["bins"])
         frm = "-" if row["detectable_from"] is None else f"{row['detectable_from']:g}"
         print(f"| {eff} | {concealed.SIZES[eff]} | {cells} | {row['right']}/{row['n']} | {frm} |")
+    print(f"valve characteristic calibrated at the operating point: {out['valves_calibrated_right'][0]}/"
+          f"{out['valves_calibrated_right'][1]} named right; moving the operating point (P3-like): "
+          f"{out['valves_moving_op_right'][0]}/{out['valves_moving_op_right'][1]}")
     print("\nrules that reject a finding which passed the acceptance test (false discoveries removed / true "
           "findings removed; alone: no other check failed):")
     print("| rule | false discoveries removed | true findings removed | alone: false / true |")
