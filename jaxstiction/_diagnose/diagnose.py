@@ -410,13 +410,21 @@ def _gain_from_the_block(fam, model, after, level, drift_sig, b, s, proof, ev) -
       nominal, +2.3 over the refitted linear valve), and the nominal stands. A
       characteristic proven by the operating point is exempt: the refit of B and the
       offset hides exactly that evidence (`characteristic`).
+
+    A valve characteristic is exempt from the first check (its gain over the level
+    is recorded, not required): on 200 random concealed draws
+    (`benchmarks/diagnose_power.py`, seeds 1000-1199) it removed three true
+    characteristics and no false one, while for the other blocks it removed three
+    false discoveries and no true finding. A characteristic changes the loop's gain
+    with the operating point, and a refitted level takes up much of that on a
+    record whose OP moves little.
     """
     g_lvl = _diff(after["fitness"], _heldout(level, b.op, b.pv, b.n_est)["fitness"])
     _, sp_lvl = proof.null_gain(model, level)
     need = max(0.5, sp_lvl)
     ev.update(gain_over_level=round(g_lvl, 3), spread_over_level=round(sp_lvl, 3))
     failed, notes = [], []  # both checks are made, so an audit can tell which one decided
-    if g_lvl <= need:
+    if g_lvl <= need and fam != "valve_characteristic":
         failed.append("gain_over_level")
         notes.append(f"its held-out gain is the refitted level's: {g_lvl:+.2f} points over the nominal with only "
                      f"its level refitted, {need:.2f} needed")
