@@ -129,7 +129,7 @@ def plot(runs, table, fdr, path):
         ys = [1.03 if r["right"] else -0.03 for r in rs]
         ax.scatter(xs, ys, s=9, c=["tab:green" if r["right"] else "tab:red" for r in rs], alpha=0.6, lw=0)
         edges = list(BINS[eff])
-        hi = max(xs + [edges[-1] * 1.5]) if xs else edges[-1] * 1.5
+        hi = max(xs + [edges[-1]])  # the open last bin is drawn up to its largest draw
         log = eff in ("valve_characteristic", "external_oscillation", "drift", "quantization")
         cx, cy = [], []
         for k, (_, ok, n) in enumerate(table[eff]["bins"]):

@@ -186,3 +186,19 @@ def test_a_fixed_choice_of_effect():
     assert p["effects"] == ["dead_time"] and 1 <= p["dead_time"]["samples"] <= 10
     p = concealed.draw_params(3, {"only": "stiction+external_oscillation"})
     assert p["effects"] == ["stiction", "external_oscillation"] and "period" in p["external_oscillation"]
+
+
+@pytest.mark.slow
+def test_a_characteristic_is_not_held_to_the_refitted_level():
+    # draw 1172 hides an equal-percentage valve (R 11.5) that moves the operating
+    # point; its finding gains held out over the nominal but not over the nominal
+    # with its level refitted, the rule that removed it before issue 46's audit
+    from jaxstiction import diagnose
+
+    case = concealed.build(1172)
+    assert case.effects == ("valve_characteristic",) and not case.params["valve_characteristic"]["calibrated"]
+    d = diagnose(case.loop, case.nominal)
+    vc = next(f for f in d.findings if f.effect == "valve_characteristic")
+    assert vc.evidence["gain_over_level"] <= max(0.5, vc.evidence["spread_over_level"])  # the rule would reject it
+    assert vc.accepted and d.verdict == "valve_characteristic"
+    assert concealed.right(case, d)
