@@ -43,9 +43,11 @@ from ._diagnose.locate import (
     whiteness as whiteness,
 )
 from ._diagnose.settings import (
+    ACCEPTANCE_RULES as ACCEPTANCE_RULES,
     INPUT_FAMILIES as INPUT_FAMILIES,
     JOINT_ESTIMATE as JOINT_ESTIMATE,
     OUTPUT_FAMILIES as OUTPUT_FAMILIES,
+    REJECTION_RULES as REJECTION_RULES,
 )
 from ._estimate import programs as programs
 from ._estimate.estimate import (

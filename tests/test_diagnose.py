@@ -26,6 +26,7 @@ from jaxstiction.internal import (
     rangeability_profile,
     ranked,
     refit_b,
+    REJECTION_RULES,
     segment_power,
     slip_on_proven_band,
     spectrum_lines,
@@ -34,6 +35,19 @@ from jaxstiction.internal import (
 
 
 FAST = js.DiagnoseSettings(bootstrap=19)
+
+
+def assert_no_silent_rejection(d):
+    """Every finding not accepted names the rule that rejected it, one of
+    `REJECTION_RULES` and never the final sweep's `unnamed`; an accepted one names
+    none (issue 46)."""
+    for f in d.findings:
+        why = f.evidence.get("rejected_by")
+        if f.accepted:
+            assert why is None, (f.effect, why)
+        else:
+            assert why in REJECTION_RULES and why != "unnamed", (f.effect, why, f.evidence)
+            assert (why == "significance") == (not f.evidence["significant"]), (f.effect, why)
 
 
 # ------------------------------------------------------------------ locate
@@ -184,6 +198,7 @@ def test_verdicts(case, seed, expected):
     sc = js.make_scenario(case, seed=seed)
     d = js.diagnose(sc.full.loop, sc.nominal, FAST)
     assert d.verdict == expected
+    assert_no_silent_rejection(d)
     if expected != "none":
         top = d.findings[0]
         assert top.accepted and top.effect == expected
@@ -208,6 +223,9 @@ def test_a_drift_proves_no_input_block(seed, check):
     db = next(f for f in d.findings if f.effect == "deadband")
     assert db.evidence["significant"] and db.evidence["heldout_gain"] > db.evidence["gain_needed"]
     assert not db.accepted and check in db.evidence and "note" in db.evidence
+    assert db.evidence["rejected_by"] == {"gain_over_level": "gain_over_level",
+                                          "gain_over_linear": "gain_over_linear_under_drift"}[check]
+    assert_no_silent_rejection(d)
     assert not [f for f in d.findings if f.accepted and f.effect in INPUT_FAMILIES]
     assert d.verdict == ("drift" if seed == 35 else "none")
 
@@ -234,6 +252,8 @@ def test_stiction_beside_an_external_oscillation():
                                 and f.evidence["significant"] for f in alternatives)
     assert "alternative_to" in d.findings[len(accepted)].evidence  # ranked right after what is claimed
     assert d.runner_up == d.findings[len(accepted)].effect  # the best alternative is the runner-up
+    assert all(f.evidence["rejected_by"] == "alternative" for f in alternatives)
+    assert_no_silent_rejection(d)
 
 
 def test_the_larger_likelihood_ratio_ranks_the_input_blocks():

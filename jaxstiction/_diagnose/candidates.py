@@ -28,6 +28,12 @@ from .._models import LoopModel, scaled_loop_model
 from .settings import DiagnoseSettings
 
 
+# Extra dead times searched (samples): up to 10, as a user's random loops hide (issue
+# 46: the grid stopped at 5, so a dead time of 6-10 samples could only be named by a
+# lag or a band imitating it)
+DEAD_TIMES = tuple(range(1, 11))
+
+
 def _stack(blocks):
     return jax.tree.map(lambda *xs: jnp.stack(xs), *blocks)
 
@@ -52,7 +58,7 @@ def _input_candidates(op: np.ndarray, grid: int):
     return {
         "stiction": ([Kano(s, j) for s, j in kano], [{"S": s, "J": j} for s, j in kano]),
         "deadband": ([Deadband(w) for w in widths], [{"width": w} for w in widths]),
-        "dead_time": ([DeadTime(k) for k in range(1, 6)], [{"samples": k} for k in range(1, 6)]),
+        "dead_time": ([DeadTime(k) for k in DEAD_TIMES], [{"samples": k} for k in DEAD_TIMES]),
         "valve_characteristic": ([EqualPercentage(R) for R in Rs], [{"R": R} for R in Rs]),
         "saturation": ([TravelLimits(hi=h) for h in qs_hi] + [TravelLimits(lo=v) for v in qs_lo],
                        [{"hi": float(h)} for h in qs_hi] + [{"lo": float(v)} for v in qs_lo]),

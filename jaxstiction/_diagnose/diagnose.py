@@ -214,6 +214,7 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         if said:
             stiction["note"] = said
             say(said)
+    findings = _named_rejections(findings)
     order = {f.effect: i for i, f in enumerate(ordered)}  # the alternatives follow in their rank
     findings.sort(key=lambda f: (not f.accepted, order.get(f.effect, len(order)), -f.evidence.get("statistic", -1e9)
                                  if f.evidence.get("statistic") is not None else 0.0))
@@ -331,6 +332,7 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             params = {"step_std": round(s_d * math.sqrt(q_d), 4), "noise_pole": round(a_d, 4),
                       "innovation_std": round(s_d, 4)}
         if not sig_f:
+            ev["rejected_by"] = "significance"
             findings.append(Finding(fam, {**params, "interval": iv}, ev, before, before, False))
             continue
         after, gain, kgain, cc = _prove(model, b.op, b.pv, b.n_est, before, osc if fam in INPUT_FAMILIES else None)
@@ -348,6 +350,8 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             _, spread = proof.null_kstep_gain(model, stationary, a_s)
             ev.update(k_step_gain_over_stationary=round(kgain_s, 5), k_step_spread=round(spread, 5), stochastic=True)
             ok = kgain_s > 0
+            if not ok:
+                ev["rejected_by"] = "drift_k_step_gain"
             ev["note"] = ("drift is a stochastic disturbance: it cannot improve simulation fit, only prediction, "
                           "and its held-out k-step gain is not compared with its spread")
         else:
@@ -355,12 +359,15 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             need = max(0.5, spread)
             ev.update(spread=round(spread, 3), gain_needed=round(need, 3))
             ok = gain > need
+            if not ok:
+                ev["rejected_by"] = "heldout_gain"
             if ok and fam in INPUT_FAMILIES:
                 ok = _gain_from_the_block(fam, model, after, lvl, drift_sig, b, s, proof, ev)
             if fam == "external_oscillation" and not ok and cc["passes"]:
                 ok = proof.narrow_band(ev, params, gain, b.pv - s.base_sim, b.c0, b.d0, P)
                 if ok:  # no deterministic block: the model stays the nominal
                     model, after = b.nominal, before
+                    ev.pop("rejected_by", None)
         if fam in OUTPUT_FAMILIES and not cc["passes"]:
             # An output-side effect must leave no OP-residual correlation: an
             # oscillation or wander that OP still explains is one the loop makes (a
@@ -369,6 +376,8 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             # ranks them below an oscillation with a larger likelihood ratio): on
             # real loops the right one can fail it beside a second effect (CHEM23's
             # stiction, beside its fast oscillation).
+            if ok:
+                ev["rejected_by"] = "output_cross_correlation"
             ok = False
             ev["note"] = ev.get("note", "") + ("; " if "note" in ev else "") + (
                 "its residual still correlates with past OP: not accepted as an external effect")
@@ -401,23 +410,34 @@ def _gain_from_the_block(fam, model, after, level, drift_sig, b, s, proof, ev) -
       nominal, +2.3 over the refitted linear valve), and the nominal stands. A
       characteristic proven by the operating point is exempt: the refit of B and the
       offset hides exactly that evidence (`characteristic`).
+
+    A valve characteristic is exempt from the first check (its gain over the level
+    is recorded, not required): on 200 random concealed draws
+    (`benchmarks/diagnose_power.py`, seeds 1000-1199) it removed three true
+    characteristics and no false one, while for the other blocks it removed three
+    false discoveries and no true finding. A characteristic changes the loop's gain
+    with the operating point, and a refitted level takes up much of that on a
+    record whose OP moves little.
     """
     g_lvl = _diff(after["fitness"], _heldout(level, b.op, b.pv, b.n_est)["fitness"])
     _, sp_lvl = proof.null_gain(model, level)
     need = max(0.5, sp_lvl)
     ev.update(gain_over_level=round(g_lvl, 3), spread_over_level=round(sp_lvl, 3))
-    if g_lvl <= need:
-        ev["note"] = (f"its held-out gain is the refitted level's: {g_lvl:+.2f} points over the nominal with only "
-                      f"its level refitted, {need:.2f} needed")
-        return False
+    failed, notes = [], []  # both checks are made, so an audit can tell which one decided
+    if g_lvl <= need and fam != "valve_characteristic":
+        failed.append("gain_over_level")
+        notes.append(f"its held-out gain is the refitted level's: {g_lvl:+.2f} points over the nominal with only "
+                     f"its level refitted, {need:.2f} needed")
     if drift_sig and not (fam == "valve_characteristic" and s.by_op):
         g_lin = _diff(after["fitness"], _heldout(s.base_model, b.op, b.pv, b.n_est)["fitness"])
         ev["gain_over_linear"] = round(g_lin, 3)
         if g_lin <= 0:
-            ev["note"] = (f"a drift is significant, and the linear valve refitted the same way scores as well held "
-                          f"out ({g_lin:+.2f} points): its gain is the refit following the drift, not the block")
-            return False
-    return True
+            failed.append("gain_over_linear_under_drift")
+            notes.append(f"a drift is significant, and the linear valve refitted the same way scores as well held "
+                         f"out ({g_lin:+.2f} points): its gain is the refit following the drift, not the block")
+    if failed:
+        ev.update(rejected_by=failed[0], rules_failed=failed, note="; ".join(notes))
+    return not failed
 
 
 def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):
@@ -436,7 +456,8 @@ def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):
         drop, note = (("stiction", "J is not significantly above 0: deadband") if lr_j < 3.84 else
                       ("deadband", f"subsumed by stiction: J is significantly above 0 (likelihood ratio {lr_j:.1f})"))
         acc.pop(drop)
-        findings = [_revised(f, False, note=note) if f.effect == drop else f for f in findings]
+        findings = [_revised(f, False, note=note, rejected_by="stiction_vs_deadband") if f.effect == drop else f
+                    for f in findings]
     return findings, _ranked(list(acc.values()))
 
 
@@ -451,7 +472,7 @@ def _alternatives(findings: list[Finding], first: Finding) -> list[Finding]:
 
     note = (f"passes on its own, but as an alternative to {first.effect}, which explains the mismatch better; "
             "the two were not fitted together, so it is not claimed")
-    return [f if kept(f) else _revised(f, False, alternative_to=first.effect,
+    return [f if kept(f) else _revised(f, False, alternative_to=first.effect, rejected_by="alternative",
                                        note=f"{f.evidence['note']}; {note}" if "note" in f.evidence else note)
             for f in findings]
 
@@ -500,6 +521,8 @@ def _second_oscillation(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
         if ok2:
             both, after2 = model, first.heldout_after
     ev2["note"] = f"second block, on top of {verdict}" + (f"; {ev2['note']}" if "note" in ev2 else "")
+    if not ok2:
+        ev2["rejected_by"] = "heldout_gain"
     # reported either way; accepted only when it proved itself held out
     findings = findings + [Finding("external_oscillation", params2, ev2, before, after2, bool(ok2), both)]
     if ok2:
@@ -507,6 +530,23 @@ def _second_oscillation(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
                                                   f_.parameters)]
         model = both
     return findings, model
+
+
+def _named_rejections(findings: list[Finding]) -> list[Finding]:
+    """No silent rejection: every finding not accepted names the rule that rejected it
+    (`evidence["rejected_by"]`, one of `REJECTION_RULES`). Each rejection site names
+    its own; one that did not is named `unnamed` here (a defect the tests look for),
+    and an accepted finding carries none."""
+    out = []
+    for f in findings:
+        ev = f.evidence
+        if f.accepted and "rejected_by" in ev:
+            f = dataclasses.replace(f, evidence={k: v for k, v in ev.items() if k != "rejected_by"})
+        elif not f.accepted and "rejected_by" not in ev:
+            f = dataclasses.replace(f, evidence={**ev, "rejected_by": "significance" if not ev.get("significant")
+                                                 else "unnamed"})
+        out.append(f)
+    return out
 
 
 def _not_identifiable(verdict: str, findings, given: bool) -> tuple[str, ...]:

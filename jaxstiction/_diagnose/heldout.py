@@ -71,8 +71,12 @@ class Finding(eqx.Module):
 
 
 def _revised(finding: Finding, accepted: bool, **evidence) -> Finding:
-    """`finding` with its acceptance decided again and `evidence` added."""
-    return dataclasses.replace(finding, evidence={**finding.evidence, **evidence}, accepted=accepted)
+    """`finding` with its acceptance decided again and `evidence` added (an accepted
+    finding loses the `rejected_by` of an earlier decision)."""
+    ev = {**finding.evidence, **evidence}
+    if accepted:
+        ev.pop("rejected_by", None)
+    return dataclasses.replace(finding, evidence=ev, accepted=accepted)
 
 
 def _add_output(model: LoopModel, block) -> LoopModel:

@@ -88,7 +88,7 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
               "bootstrap_median": round(float(np.median(rows[:, i])), 3), "significant": bool(sig_f), "joint": True,
               "method": f"{label} and Box-Jenkins linear part refitted jointly; null from {len(rows)} bootstrap refits"}
         if not sig_f:
-            return Finding(effect, params, ev, before, before, False, model)
+            return Finding(effect, params, {**ev, "rejected_by": "significance"}, before, before, False, model)
         after, gain, kgain, cc = _prove(model, op, pv, n_est, before)
         spread = float(np.std(rows[:, i + 2]))
         need = max(0.5, spread)
@@ -101,8 +101,12 @@ def _joint_stiction(op, pv, n_est: int, before: dict, families: int, settings: D
         ev.update(heldout_gain=round(gain, 3), heldout_gain_over_linear=round(own, 3),
                   k_step_gain=round(float(kgain), 5), residual_cross_correlation_passes=cc["passes"],
                   spread=round(spread, 3), gain_needed=round(need, 3), **extra)
-        ok = gain > need and own > need and extra["rank_score"] > 0 and slips
-        return Finding(effect, params, ev, before, after, bool(ok), model)
+        failed = [rule for rule, passes in (("heldout_gain", gain > need), ("joint_gain_over_linear", own > need),
+                                            ("joint_rank_score", extra["rank_score"] > 0), ("joint_slip", slips))
+                  if not passes]
+        if failed:
+            ev.update(rejected_by=failed[0], rules_failed=failed)
+        return Finding(effect, params, ev, before, after, not failed, model)
 
     def lr(model, null):  # likelihood ratio of `model` against `null`, estimation data
         return float(fit.n_estimation) * float(np.log(float(null.noise.variance) / float(model.noise.variance)))
@@ -163,5 +167,6 @@ def _slip_on_proven_band(stiction: Finding, deadband: Finding | None, lr_slip: f
             "its linear valve (one slip simulated at the wrong time held out costs a simulation much of its fitness)")
     return (_revised(stiction, True, proof="band held out, slip on estimation data",
                      band_heldout_gain=deadband.evidence["heldout_gain"], note=note),
-            _revised(deadband, False, note="subsumed by stiction: J is significantly above 0"))
+            _revised(deadband, False, note="subsumed by stiction: J is significantly above 0",
+                     rejected_by="stiction_vs_deadband"))
 

@@ -15,6 +15,26 @@ VERDICTS = ("none", "stiction", "deadband", "dead_time", "valve_characteristic",
             "external_oscillation", "drift", "quantization")
 OUTPUT_FAMILIES = ("external_oscillation", "drift")
 INPUT_FAMILIES = ("stiction", "deadband", "dead_time", "valve_characteristic", "saturation", "actuator_lag")
+# Why a finding is not accepted: `Finding.evidence["rejected_by"]` names one of these.
+# The first four are the acceptance test itself (significant, a held-out gain beyond
+# the spread, residuals that pass); the others reject a finding that passed it.
+REJECTION_RULES = {
+    "significance": "not significant against the bootstrap's null (family-wise)",
+    "heldout_gain": "its held-out simulation gain does not exceed the run-to-run spread (nor, for an "
+                    "oscillation, does its band persist held out)",
+    "output_cross_correlation": "an output-side effect whose residual still correlates with past OP",
+    "drift_k_step_gain": "a drift model that predicts k steps ahead no better than stationary noise held out",
+    "gain_over_level": "an input block whose held-out gain is the refitted PV level's (`_gain_from_the_block`)",
+    "gain_over_linear_under_drift": "with a drift significant, an input block that beats the linear valve refitted "
+                                    "the same way by nothing held out (`_gain_from_the_block`)",
+    "stiction_vs_deadband": "stiction and deadband both proven: the slip J decides which one stands",
+    "alternative": "proven on its own, but an alternative to the verdict's block (never fitted together with it)",
+    "joint_gain_over_linear": "joint fit (no nominal): no held-out gain over its own linear valve",
+    "joint_rank_score": "joint fit (no nominal): penalised likelihood ratio against the linear valve not positive",
+    "joint_slip": "joint fit (no nominal): J not significantly above 0, so the band is a deadband",
+    "unnamed": "rejected by a step that named no rule (a defect: every rejection should name its rule)",
+}
+ACCEPTANCE_RULES = ("significance", "heldout_gain", "output_cross_correlation", "drift_k_step_gain")
 
 
 # The joint stiction fit: the screen's profile, with the S and J intervals also read
