@@ -286,7 +286,7 @@ def test_screen_entries_equal_single_fits(fleet, screened):
 @pytest.mark.parametrize("kano, deadband, sticky, slip", [
     (80.0, 80.0, True, False),   # a band without a visible slip: still a sticky valve
     (80.0, 75.0, True, True),    # the slip jump gains 5 points over the deadband
-    (60.5, 50.0, False, False),  # Kano gains only 0.5 point over the linear valve
+    (60.5, 50.0, False, True),   # Kano gains only 0.5 point over the linear valve (beating the deadband is not enough)
 ])
 def test_verdict_rule(fleet, kano, deadband, sticky, slip):
     """The model-based rule on chosen scores: Kano against the linear valve (60 %)
