@@ -495,11 +495,13 @@ def test_cli_diagnose_unstable_nominal(tmp_path):
 
 
 def _diagnosed_without_nominal(case):
-    """Scenario `case` (seed 0, its first 1500 samples) diagnosed with no nominal
-    model, with a reduced joint Kano search and bootstrap."""
+    """Scenario `case` (seed 0, its first 1500 samples, with its setpoint) diagnosed
+    with no nominal model, with a reduced joint Kano search and bootstrap. The
+    setpoint's binary-noise moves make the screen's verdict `inconclusive` here, so
+    the diagnosis' own proof names the valve."""
     sc = js.make_scenario(case, seed=0)
     loop = sc.full.loop
-    short = js.make_loop(np.asarray(loop.op)[:1500], np.asarray(loop.pv)[:1500])
+    short = js.make_loop(np.asarray(loop.op)[:1500], np.asarray(loop.pv)[:1500], sp=np.asarray(sc.full.sp)[:1500])
     joint = js.Settings(use_spline=False,
                         physical=js.PhysicalSettings(num_S=41, num_J=6, starts=3, refine=9, refine_S=31, final=3,
                                                      line=15, rounds=1, polish_starts=2, init_count=3, oe_steps=20,
@@ -588,3 +590,27 @@ def test_programs_released_near_the_map_limit():
     assert release_programs_near_map_limit(share=0.0)
     assert maps() < before
     np.testing.assert_allclose(np.asarray(f(x)), want)
+
+
+def test_one_stiction_policy_with_the_screen():
+    """Without a nominal model, `diagnose` names the valve as the screen's verdict
+    does: sticky -> stiction (slip seen) or deadband; not sticky -> neither, the next
+    accepted effect standing; inconclusive -> the diagnosis' own proof stands, said so."""
+    from types import SimpleNamespace
+
+    from jaxstiction.internal import screen_policy
+
+    found = [SimpleNamespace(effect="deadband", accepted=True), SimpleNamespace(effect="drift", accepted=True)]
+    sticky = {"verdict": "stiction", "slip_identified": True, "probability": 0.9, "reason": ""}
+    assert screen_policy("none", found, sticky)[0] == "stiction"
+    assert screen_policy("none", found, {**sticky, "slip_identified": False})[0] == "deadband"
+    assert screen_policy("deadband", found, sticky) == ("deadband", "")
+    healthy = {"verdict": "no_stiction", "slip_identified": False, "probability": 0.1, "reason": ""}
+    named, note = screen_policy("deadband", found, healthy)
+    assert named == "drift" and "does not call the valve sticky" in note
+    assert screen_policy("deadband", found[:1], healthy)[0] == "none"
+    assert screen_policy("dead_time", found, healthy) == ("dead_time", "")
+    unsure = {"verdict": "inconclusive", "slip_identified": False, "probability": 0.2,
+              "reason": "the setpoint moves carry most of PV's variance"}
+    named, note = screen_policy("deadband", found, unsure)
+    assert named == "deadband" and "inconclusive" in note and "setpoint" in note

@@ -251,15 +251,20 @@ def _screen_policy(verdict: str, findings, stiction: dict) -> tuple[str, str]:
     valve is sticky when the screen's verdict says so. A sticky valve is named
     `stiction` when its slip is identified, else `deadband` (the J = 0 member of the
     Kano family: a band with no visible slip), unless the diagnosis already named
-    one of the two; a valve the verdict does not call sticky is named neither, and
-    the next accepted effect (or `none`) stands. Returns the verdict and a note
-    saying what changed ("" when nothing did)."""
+    one of the two; a valve the verdict calls not sticky is named neither, and the
+    next accepted effect (or `none`) stands. Where the verdict is `inconclusive` (its
+    data-quality gate could not judge the record), the diagnosis' own held-out proof
+    decides. Returns the verdict and a note saying what changed or why ("" when
+    nothing needs saying)."""
     valve = ("stiction", "deadband")
     if stiction["verdict"] == "stiction" and verdict not in valve:
         named = "stiction" if stiction["slip_identified"] else "deadband"
         return named, (f"the stiction verdict calls the valve sticky (probability {stiction['probability']:.2f}): "
                        f"named {named} instead of {verdict}")
-    if stiction["verdict"] != "stiction" and verdict in valve:
+    if stiction["verdict"] == "inconclusive" and verdict in valve:
+        return verdict, (f"the stiction verdict is inconclusive ({stiction['reason']}): {verdict} rests on "
+                         "the diagnosis' own held-out proof")
+    if stiction["verdict"] == "no_stiction" and verdict in valve:
         others = [f.effect for f in findings if f.accepted and f.effect not in valve]
         named = others[0] if others else "none"
         why = stiction["reason"] or f"probability {stiction['probability']:.2f}"
