@@ -439,6 +439,22 @@ def test_threads_give_what_one_call_at_a_time_gives(fleet):
         js.ScreenSettings(threads=-1)
 
 
+@pytest.mark.slow
+def test_results_do_not_depend_on_the_chunk(fleet, screened):
+    """One loop per batched call gives the verdicts, and to rounding the numbers, of
+    the fixture's three loops per call."""
+    folder, _, _ = fleet
+    one = js.screen(folder, dataclasses.replace(SCREEN, chunk=1)).to_json()["loops"]
+    three = screened.to_json()["loops"]
+    assert [e["name"] for e in one] == [e["name"] for e in three]
+    for a, b in zip(one, three):
+        assert (a["status"], a.get("verdict"), a["stiction_detected"]) == (b["status"], b.get("verdict"),
+                                                                             b["stiction_detected"])
+        for key in ("stiction_probability", "fitness", "S", "J", "band_percent", "evidence"):
+            if a.get(key) is not None:
+                assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-6), (a["name"], key)
+
+
 def test_default_threads(monkeypatch):
     """One call in flight per CPU core, at most `MAX_THREADS`, unless asked."""
     from jaxstiction.internal import default_threads, MAX_THREADS, thread_map
