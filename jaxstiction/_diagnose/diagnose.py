@@ -64,9 +64,8 @@ from .._estimate.settings import SCREEN_ESTIMATE
 from .._filters import lfilter
 from .._loop import bucket_length, make_loop, pad
 from .._models import LoopModel, NoiseModel
-from .._verdict.gate import gate_reason, GATES
-from .._verdict.settings import VerdictSettings
-from .._verdict.verdict import verdict, VERDICTS
+from .._verdict.gate import GATES
+from .._verdict.verdict import verdict, verdict_reason, VERDICTS
 from .candidates import _arma11, _fit_sinusoid, _quantisation
 from .characteristic import rangeability_profile
 from .drift import drift_noise_model
@@ -237,9 +236,7 @@ def _stiction_verdict(loop, b: _Baseline) -> dict:
     fit = estimate(dataclasses.replace(lp, sp=None), SCREEN_ESTIMATE)
     v = verdict(fit, lp)
     code = int(v.gate)
-    g = v.gate_measures
-    reason = gate_reason(code, saturated=float(g.saturated), compressed=float(g.compressed),
-                         setpoint_share=float(g.setpoint_share), min_periods=VerdictSettings().min_periods)
+    reason = verdict_reason(v)
     which = VERDICTS[int(v.verdict)]
     return {"verdict": which, "probability": round(float(v.probability), 3), "band_seen": bool(v.stiction_detected),
             "slip_identified": bool(v.slip_identified), "gate": GATES[code],

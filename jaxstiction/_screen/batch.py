@@ -36,7 +36,7 @@ from .._loop import bucket_length, Loop, make_loop, stack
 from .._misc import json_number as _r, thread_map
 from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
-from .._verdict.verdict import CAUSES, FEATURES, usable, verdict, VERDICTS
+from .._verdict.verdict import CAUSES, FEATURES, usable, verdict, verdict_reason, VERDICTS
 from .settings import ScreenSettings
 
 
@@ -106,8 +106,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
              else ""]
     ind, g = ver.indicators, ver.gate_measures
     gate = GATES[int(ver.gate)]
-    reason = gate_reason(int(ver.gate), saturated=float(g.saturated), compressed=float(g.compressed),
-                         setpoint_share=float(g.setpoint_share), min_periods=vset.min_periods)
+    reason = verdict_reason(ver, vset)
     which = VERDICTS[int(ver.verdict)]
     if not ok:
         reason = RESULTS[fit.result]

@@ -72,7 +72,7 @@ from .._filters import fitness, fitness_trend_free
 from .._loop import Loop
 from .calibration import CALIBRATION
 from .crossval import crossval_gain
-from .gate import gate_measures, GateMeasures, GATES, HARD
+from .gate import gate_measures, gate_reason, GateMeasures, GATES, HARD
 from .indicators import Indicators, indicators
 from .probability import Calibration
 from .settings import VerdictSettings
@@ -303,3 +303,11 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
         period_kano=period_k,
         line_persists=ok & persists,
     )
+
+
+def verdict_reason(v: Verdict, settings: VerdictSettings = VerdictSettings()) -> str:
+    """The one-line reason of one (unbatched) verdict's gate, "" when it passed: the
+    text the screen and `diagnose` report, filled in from `v.gate_measures`."""
+    g = v.gate_measures
+    return gate_reason(int(v.gate), saturated=float(g.saturated), compressed=float(g.compressed),
+                       setpoint_share=float(g.setpoint_share), min_periods=settings.min_periods)
