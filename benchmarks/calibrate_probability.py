@@ -219,6 +219,8 @@ def main():
     parser.add_argument("--threads", type=int, default=0)
     parser.add_argument("--write", action="store_true", help="write jaxstiction/_verdict/calibration.py")
     parser.add_argument("--fresh", action="store_true", help="recompute the cached evidence")
+    parser.add_argument("--ceiling", action="store_true",
+                        help="also the best classifier tried over all the evidence (needs scikit-learn)")
     parser.add_argument("--real-share", type=float, default=REAL_SHARE,
                         help="share of the total weight carried by the real records (default 2/3)")
     args = parser.parse_args()
@@ -250,8 +252,57 @@ def main():
         print("\n  withheld ISDB loops (never fitted on), with the coefficients above:")
         for e in withheld:
             print(f"    {e['name']:7s} called {'sticky' if called(e, cal) else '-'} (gate {e['gate']})")
+    if args.ceiling:
+        ceiling(sim, check, real)
     if args.write:
         write(cal, args)
+
+
+def ceiling(sim, check, real):
+    """How well any classifier of this evidence could do: gradient-boosted trees
+    (scikit-learn, not a dependency of the package) over every feature, the gate's
+    measures and the count of oscillation periods, fitted on the fit seeds and scored
+    on the check seeds (a loop not fitted, or stopped by a hard gate, is not sticky);
+    on the plant half, leave one valve out, fitted on the fleet and the other real
+    records. An upper reference for the logistic probability, not a product."""
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    def rows(entries):
+        return np.array([[e["features"][k] for k in FEATURES]
+                         + [e["gate_measures"][k] for k in ("setpoint_share", "compressed", "saturated")]
+                         + [e["indicators"]["periods"] or 0.0] for e in entries], float)
+
+    def judged(e):
+        return e["status"] == "ok" and e["gate"] not in HARD
+
+    train = [e for e in sim if judged(e)]
+    model = GradientBoostingClassifier(random_state=0).fit(rows(train), [e["truth"]["sticky"] for e in train])
+    scored = [e for e in check if judged(e)]
+    calls = dict(zip([e["name"] for e in scored], model.predict(rows(scored)).astype(bool)))
+    print("\nceiling: gradient-boosted trees over all the evidence, fitted on the fit seeds")
+    print(f"  check seeds: balanced accuracy "
+          f"{fmt(balanced([(calls.get(e['name'], False), e['truth']['sticky']) for e in check]))}")
+    print(f"    over the loops no hard gate stops: "
+          f"{fmt(balanced([(calls[e['name']], e['truth']['sticky']) for e in scored]))}")
+    quiet = sum(e["truth"]["sticky"] and e["truth"]["slips"] < 4 for e in check)
+    print(f"    sticky valves that slipped fewer than 4 times in their record: {quiet} of "
+          f"{sum(e['truth']['sticky'] for e in check)}")
+    plant = [e for e in real if e["set"] == "plant" and e["label"] is not None and judged(e)]
+    labelled = [e for e in real if e["label"] is not None and judged(e)]
+    plant_calls = {}
+    for valve in sorted({e["valve"] for e in plant}):
+        others = [e for e in labelled if e["valve"] != valve]
+        X = np.concatenate([rows(train), rows(others)])
+        y = [e["truth"]["sticky"] for e in train] + [e["label"] for e in others]
+        w = np.r_[np.ones(len(train)), np.full(len(others), REAL_SHARE / (1 - REAL_SHARE) * len(train) / len(others))]
+        m = GradientBoostingClassifier(random_state=0).fit(X, y, sample_weight=w)
+        mine = [e for e in plant if e["valve"] == valve]
+        plant_calls.update(zip([e["name"] for e in mine], m.predict(rows(mine)).astype(bool)))
+    every = [e for e in real if e["set"] == "plant" and e["label"] is not None]
+    pairs = [(plant_calls.get(e["name"], False), e["label"]) for e in every]
+    print(f"  plant development half, leave one valve out: recordings {fmt(balanced(pairs))}")
+    calls_by_name = {e["name"]: plant_calls.get(e["name"], False) for e in every}
+    print(f"    valves: {fmt(balanced(by_valve(every, calls_by_name)))}")
 
 
 def write(cal, args):
