@@ -465,6 +465,7 @@ def test_cli_diagnose_names_the_file_in_a_data_error(tmp_path):
     _assert_one_line_error(run("diagnose", str(f), "--json"), "error: flat: `OP` is constant")
 
 
+@pytest.mark.slow
 def test_cli_diagnose_json(tmp_path):
     sc = js.make_scenario("P1", seed=1)
     rec = sc.full

@@ -11,20 +11,16 @@ import pytest
 import reference_verdict as R
 
 import jaxstiction as js
-from jaxstiction.internal import (
-    bicoherence,
-    crossval_gain,
-    fit_calibration,
-    gate,
-    gate_measures,
-    GATES,
-    horch_phase,
-    indicators,
-    kstep_prediction,
-    oscillation,
-    shape_index,
-    stuck_share,
-)
+import jaxstiction.internal as internal
+from jaxstiction.internal import fit_calibration, gate, GATES, kstep_prediction
+
+
+# Called eagerly, the indicators re-trace their loops on every call (seconds each on a
+# cold cache); the tests call them jitted, compiled once per record length, and
+# `test_indicators_under_jit_and_vmap` compares jitted with eager.
+bicoherence, gate_measures, horch_phase, indicators, oscillation, shape_index, stuck_share = (
+    eqx.filter_jit(getattr(internal, name)) for name in (
+        "bicoherence", "gate_measures", "horch_phase", "indicators", "oscillation", "shape_index", "stuck_share"))
 
 
 @pytest.fixture(scope="module")
@@ -75,12 +71,16 @@ def test_indicators_tell_a_limit_cycle_from_a_sinusoid(records):
 
 def test_indicators_under_jit_and_vmap(records):
     """`indicators` jitted equals it eager, and vmapped over padded records equals a
-    loop over the records cut to their real samples."""
+    loop over the records, and (up to the periodogram's grid) the records cut to their
+    real samples."""
     recs = [records[k] for k in ("sticky", "external", "sticky")]
     lengths = (1200, 1000, 900)
     loops = js.stack([js.make_loop(op[:n], pv[:n]) for (op, pv), n in zip(recs, lengths)])
     nan = jnp.full_like(loops.op, jnp.nan)
-    batched = eqx.filter_jit(jax.vmap(indicators))(loops.op, loops.pv, nan, loops.mask)
+    batched = eqx.filter_jit(jax.vmap(internal.indicators))(loops.op, loops.pv, nan, loops.mask)
+    first = (loops.op[0], loops.pv[0], nan[0], loops.mask[0])
+    for a, b in zip(jax.tree.leaves(internal.indicators(*first)), jax.tree.leaves(indicators(*first))):
+        assert float(b) == pytest.approx(float(a), rel=1e-9, abs=1e-12, nan_ok=True)
     for i, ((op, pv), n) in enumerate(zip(recs, lengths)):
         one = indicators(loops.op[i], loops.pv[i], nan[i], loops.mask[i])
         for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(batched)):
@@ -134,10 +134,10 @@ def test_crossval_finds_the_sticky_valve():
     padded records it equals the record-by-record values."""
     op, pv = _arx_record(False, 2)
     loops = [js.make_loop(*_arx_record(True, 1)), js.make_loop(op[:1000], pv[:1000])]
-    gains = [np.asarray(crossval_gain(lp.op, lp.pv, lp.mask)) for lp in loops]
+    gains = [np.asarray(internal.crossval_gain(lp.op, lp.pv, lp.mask)) for lp in loops]
     assert np.min(gains[0]) > 30 and np.max(gains[1]) < 5  # no fold credits a Kano valve on a linear record
     batch = js.stack(loops)
-    together = np.asarray(eqx.filter_jit(jax.vmap(crossval_gain))(batch.op, batch.pv, batch.mask))
+    together = np.asarray(eqx.filter_jit(jax.vmap(internal.crossval_gain))(batch.op, batch.pv, batch.mask))
     np.testing.assert_allclose(together[0], gains[0], rtol=1e-6, atol=1e-6)
 
 

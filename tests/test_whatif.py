@@ -294,6 +294,7 @@ def test_no_setpoint_is_a_constant_setpoint():
     assert js["error_std_repaired_interval"] is not None  # NaN intervals of S and J: S and J are kept
 
 
+@pytest.mark.slow
 def test_a_slow_repaired_loop_is_read_on_the_last_samples():
     """A repaired loop that settles for longer than the record leaves is read on the
     record's last `min_samples` samples after the valve's start, and says so; with
