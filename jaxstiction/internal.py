@@ -163,6 +163,7 @@ from ._verdict.verdict import (
     features as features,
     gate as gate,
     residual_line as residual_line,
+    runaway as runaway,
     usable as usable,
     VERDICTS as VERDICTS,
 )

@@ -15,7 +15,7 @@ from test_estimate import _loop, SMALL
 
 import jaxstiction as js
 from jaxstiction import fitness, rank
-from jaxstiction.internal import bucket_length, chunk_size, predicted, residual_line
+from jaxstiction.internal import bucket_length, chunk_size, FEATURES, GATES, HARD, predicted, residual_line, runaway
 
 
 SCREEN = js.ScreenSettings(estimate=SMALL, chunk=3)
@@ -303,6 +303,34 @@ def test_verdict_rule(fleet, kano, deadband, sticky, slip):
     assert js.CAUSES[int(v.cause)] in (("stiction",) if bool(v.stiction_detected) else ("none", "external_oscillation"))
 
 
+def test_a_runaway_simulation_gives_no_model_evidence(fleet):
+    """Whether a fitted model's runaway simulation ends at -1e30 % or overflows
+    depends on rounding (on the batch's size, say); both give one verdict: the
+    model-based gains left out of the probability, no model-based win and no slip
+    identified, the band kept, and the loop judged on the rest of its evidence."""
+    import equinox as eqx
+    _, good, _ = fleet
+    f = js.estimate(good[1], SMALL)
+    settings = js.VerdictSettings(prediction_band=2.0, trend_degree=None)  # test_verdict_rule's: compiled once
+    names = ("fitness_physical", "fitness_physical_estimation", "fitness_linear", "fitness_linear_estimation")
+
+    def ran_away(value):
+        return eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + value] * 4)
+
+    huge, overflow = (js.verdict(ran_away(v), good[1], settings) for v in (-1e30, -np.inf))
+    assert bool(runaway(ran_away(-1e30))) and bool(runaway(ran_away(-np.inf))) and not bool(runaway(f))
+    np.testing.assert_array_equal(np.asarray(huge.features), np.asarray(overflow.features))
+    assert float(huge.probability) == float(overflow.probability) and int(huge.verdict) == int(overflow.verdict)
+    x = dict(zip(FEATURES, np.asarray(huge.features)))
+    assert x["evidence"] == x["evidence_prediction"] == x["evidence_estimation"] == 0.0  # left out
+    assert x["band"] == pytest.approx(float(f.S / (f.op_range[1] - f.op_range[0])))  # kept
+    for v in (huge, overflow):
+        assert not bool(v.model_wins) and not bool(v.slip_identified)
+        judged = GATES[int(v.gate)] not in HARD
+        assert bool(v.stiction_detected) == (judged and float(v.probability) >= settings.threshold)
+
+
+@pytest.mark.slow
 def test_verdict_oscillation_the_kano_valve_leaves_is_not_its_cycle(fleet):
     """A Kano valve that wins on the scores does not win the model-based test when
     its residual keeps the linear valve's narrow line (here the two models are made one, so the
@@ -323,6 +351,7 @@ def test_verdict_oscillation_the_kano_valve_leaves_is_not_its_cycle(fleet):
     assert not bool(v.line_persists) and bool(v.model_wins)
 
 
+@pytest.mark.slow
 def test_verdict_gains_are_trend_free_simulation_gains(fleet):
     """With a trend degree, `evidence` and `evidence_estimation` are the Kano valve's
     gains over the linear valve in trend-free fitness, each part simulated from its own
@@ -358,6 +387,7 @@ def _with_scores(f, kano, deadband, band):
     return eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + v for v in values])
 
 
+@pytest.mark.slow
 def test_verdict_prediction_rule(fleet):
     """A Kano valve that loses in simulation (55 against 60 %) is still sticky when it
     wins in short-horizon prediction on both parts of the record with a band of at

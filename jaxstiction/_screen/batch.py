@@ -36,7 +36,7 @@ from .._loop import bucket_length, Loop, make_loop, stack
 from .._misc import json_number as _r, thread_map
 from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
-from .._verdict.verdict import CAUSES, FEATURES, usable, verdict, verdict_reason, VERDICTS
+from .._verdict.verdict import CAUSES, FEATURES, runaway, usable, verdict, verdict_reason, VERDICTS
 from .settings import ScreenSettings
 
 
@@ -97,10 +97,13 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
     """One loop's screen entry (JSON-ready, plus a `figure` of NumPy arrays when
     `pictures`) from its unbatched host-side fit and verdict."""
     converged = bool(fit.result == RESULTS.successful)
-    ok = bool(usable(fit.result)) and math.isfinite(float(fit.fitness_physical))
+    ok = bool(usable(fit.result))
+    ran_away = bool(runaway(fit, vset))
     cause = CAUSES[int(ver.cause)]
     notes = [RESULTS[fit.result] if not converged else "", delay_note(fit.delay, fit.kind, settings) if ok else "",
-             held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation) if ok else "",
+             held_out_note(fit.fitness, fit.fitness_estimation, fit.n_validation) if ok and not ran_away else "",
+             "the fitted models' simulation runs away (an unstable fit): the verdict rests on the indicators, the "
+             "cross-validation and the band" if ok and ran_away else "",
              (f"the Kano valve leaves the linear fit's oscillation (period {float(ver.period):.0f} samples) in "
               "its residual: a disturbance from elsewhere, not the valve's cycle") if ok and bool(ver.line_persists)
              else ""]
@@ -159,7 +162,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         "model": KINDS[int(fit.kind)],
         "delay": int(fit.delay),
     }
-    if pictures and ok:
+    if pictures and ok and math.isfinite(float(fit.fitness_physical)):
         jfit = jax.tree.map(jax.numpy.asarray, fit)
         r = report(jfit, op, pv, name=name, ts=ts, settings=settings)
         rec["figure"] = dict(op=r.op, pv=r.pv, pv_sim=r.pv_sim, valve_u=r.valve_u, valve_up=r.valve_up,

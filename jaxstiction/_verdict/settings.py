@@ -50,6 +50,10 @@ class VerdictSettings(eqx.Module):
       oscillation the record must hold.
     - `crossval_folds`, `crossval_horizon`: the blocked cross-validation's blocks
       and prediction horizon (samples).
+    - `runaway_fitness`: a fitted model whose simulation fitness (34) on the record
+      is below this (%), or not finite, has run away (an unstable fit: its error
+      is 10^4 times PV's spread at the default); its model-based evidence is then
+      left out, and the verdict rests on the rest.
     """
 
     min_gain: float = eqx.field(static=True, default=1.0)
@@ -72,6 +76,7 @@ class VerdictSettings(eqx.Module):
     min_periods: float = eqx.field(static=True, default=3.0)
     crossval_folds: int = eqx.field(static=True, default=4)
     crossval_horizon: int = eqx.field(static=True, default=5)
+    runaway_fitness: float = eqx.field(static=True, default=-1e6)
 
     def __check_init__(self):
         check_counts(self, positive=("prediction_horizon", "prediction_init_count", "crossval_horizon"))

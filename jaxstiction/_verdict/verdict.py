@@ -15,7 +15,9 @@ valve at all.
    each scored part is removed, so a slow drift no model can simulate neither
    swamps nor tilts the comparison) and in `prediction_horizon`-step prediction,
    on the held-out last third and on the estimation samples, and the fitted band
-   S as a fraction of the OP range. `model_wins` is the old rule on these alone
+   S as a fraction of the OP range. Where either fitted model's simulation has run
+   away (`runaway`), the gains are left out and the band alone stays.
+   `model_wins` is the old rule on these alone
    (the Kano valve beats the linear one by `min_gain` points on both parts, in
    simulation or, for a band of `prediction_band`, in prediction).
 2. *Blocked cross-validation* (`crossval`): the record cut into
@@ -201,6 +203,17 @@ def residual_line(r, weights, min_period: float, max_fraction: float):
 DATA_CODES = ("too_short", "constant_op", "constant_pv", "nonfinite_data")
 
 
+def runaway(fit, settings: VerdictSettings = VerdictSettings()) -> Bool[Array, ""]:
+    """True where the fitted Kano or linear-valve model's simulation has run away:
+    its fitness on the record is not finite or below `settings.runaway_fitness`. A
+    simulation that has run away says nothing about the valve, and whether it ends
+    at 1e30 or overflows depends on rounding, so both are treated alike."""
+    bad = jnp.zeros(jnp.shape(fit.fitness_physical), bool)
+    for f in (fit.fitness_physical, fit.fitness_linear):
+        bad = bad | ~jnp.isfinite(f) | (f < settings.runaway_fitness)
+    return bad
+
+
 def usable(result) -> Bool[Array, ""]:
     """False for the data codes of [`jaxstiction.RESULTS`][] (too short, constant OP
     or PV, NaN/inf): a solver code (a budgeted fit that did not converge) still
@@ -222,7 +235,8 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
     slip_est = fit.fitness_physical_estimation - fit.fitness_deadband_estimation
     span = fit.op_range[1] - fit.op_range[0]
     band = fit.S / jnp.where(span > 0, span, 1.0)
-    ok = usable(fit.result) & jnp.isfinite(fit.fitness_physical) & jnp.isfinite(fit.fitness_linear)
+    judged = usable(fit.result)
+    ok = judged & ~runaway(fit, settings)  # the model-based evidence means something
     op = jnp.where(loop.mask > 0, loop.op, 0.0)
     pv = jnp.where(loop.mask > 0, loop.pv, 0.0)
     sp = loop.setpoint
@@ -265,15 +279,15 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
     cv = crossval_gain(op, pv, loop.mask, folds=settings.crossval_folds, horizon=settings.crossval_horizon)
     nan = jnp.asarray(jnp.nan, op.dtype)
     x = features(ind, cv, jnp.where(ok, gain, nan), jnp.where(ok, pred[0], nan), jnp.where(ok, gain_est, nan),
-                 jnp.where(ok, band, nan))
+                 jnp.where(judged, band, nan))
     probability = calibration.probability(x)
     measures = gate_measures(op, pv, sp, loop.mask)
     code = gate(measures, ind, settings)
     hard = jnp.zeros((), bool)
     for name in HARD:
         hard = hard | (code == GATES.index(name))
-    sticky = ok & ~hard & (probability >= settings.threshold)
-    conclusive = ok & ~hard & (sticky | (code == 0))
+    sticky = judged & ~hard & (probability >= settings.threshold)
+    conclusive = judged & ~hard & (sticky | (code == 0))
     which = jnp.where(sticky, 1, jnp.where(conclusive, 0, 2)).astype(jnp.int32)
     slips = jnp.maximum(slip, slip_est) > settings.min_slip_gain
     external = ok & (share > settings.oscillation)
@@ -285,7 +299,7 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
         gate=code,
         gate_measures=measures,
         cause=cause.astype(jnp.int32),
-        slip_identified=sticky & slips,
+        slip_identified=sticky & ok & slips,
         indicators=ind,
         crossval=cv,
         features=x,
