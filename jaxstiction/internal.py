@@ -32,7 +32,7 @@ from ._diagnose.characteristic import (
     RANGEABILITIES as RANGEABILITIES,
     rangeability_profile as rangeability_profile,
 )
-from ._diagnose.diagnose import _ranked as ranked, _screen_policy as screen_policy
+from ._diagnose.diagnose import _ranked as ranked, _screen_policy as screen_policy, _valve_demoted as valve_demoted
 from ._diagnose.drift import _neg_loglik as neg_loglik, drift_noise_model as drift_noise_model, drift_test as drift_test
 from ._diagnose.heldout import _band_statistics as band_statistics
 from ._diagnose.joint import _slip_on_proven_band as slip_on_proven_band

@@ -615,3 +615,14 @@ def test_one_stiction_policy_with_the_screen():
               "reason": "the setpoint moves carry most of PV's variance"}
     named, note = screen_policy("deadband", found, unsure)
     assert named == "deadband" and "inconclusive" in note and "setpoint" in note
+    # the valve called not sticky: its finding is no longer accepted, and the model is
+    # the next accepted finding's (or the linear-valve nominal's)
+    from jaxstiction import Finding
+    from jaxstiction.internal import valve_demoted
+
+    findings = [Finding(e, {}, {}, {}, {}, True, e + " model") for e in ("deadband", "drift")]
+    out, model = valve_demoted(findings, "deadband model", "nominal")
+    assert [f.accepted for f in out] == [False, True] and model == "drift model"
+    assert out[0].evidence["rejected_by"] == "stiction_verdict"
+    assert valve_demoted(findings[:1], "deadband model", "nominal")[1] == "nominal"
+    assert valve_demoted(findings[1:], "drift model", "nominal") == (findings[1:], "drift model")

@@ -213,6 +213,8 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         if said:
             stiction["note"] = said
             say(said)
+        if stiction["verdict"] == "no_stiction":
+            findings, model = _valve_demoted(findings, model, s.base_model)
     findings = _named_rejections(findings)
     order = {f.effect: i for i, f in enumerate(ordered)}  # the alternatives follow in their rank
     findings.sort(key=lambda f: (not f.accepted, order.get(f.effect, len(order)), -f.evidence.get("statistic", -1e9)
@@ -267,6 +269,20 @@ def _screen_policy(verdict: str, findings, stiction: dict) -> tuple[str, str]:
         why = stiction["reason"] or f"probability {stiction['probability']:.2f}"
         return named, f"the stiction verdict does not call the valve sticky ({why}): {verdict} is not named"
     return verdict, ""
+
+
+def _valve_demoted(findings, model, base: LoopModel):
+    """The findings and diagnosed model once the stiction verdict has called the
+    valve not sticky: an accepted stiction or deadband finding is no longer accepted
+    (`rejected_by`: `stiction_verdict`), and the model is that of the next accepted
+    finding, or the nominal refitted with a linear valve."""
+    valve = ("stiction", "deadband")
+    if not any(f.accepted and f.effect in valve for f in findings):
+        return findings, model
+    out = [dataclasses.replace(f, accepted=False, evidence={**f.evidence, "rejected_by": "stiction_verdict"})
+           if f.accepted and f.effect in valve else f for f in findings]
+    rest = [f for f in out if f.accepted and f.model is not None]
+    return out, rest[0].model if rest else base
 
 
 def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,

@@ -32,6 +32,7 @@ REJECTION_RULES = {
     "joint_gain_over_linear": "joint fit (no nominal): no held-out gain over its own linear valve",
     "joint_rank_score": "joint fit (no nominal): penalised likelihood ratio against the linear valve not positive",
     "joint_slip": "joint fit (no nominal): J not significantly above 0, so the band is a deadband",
+    "stiction_verdict": "no nominal model: the stiction verdict (the screen's) does not call the valve sticky",
     "unnamed": "rejected by a step that named no rule (a defect: every rejection should name its rule)",
 }
 ACCEPTANCE_RULES = ("significance", "heldout_gain", "output_cross_correlation", "drift_k_step_gain")
