@@ -37,8 +37,8 @@ ISDB = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "isdb"
 # xdist hands whole files to the two workers in collection order as each frees up,
 # so this is a longest-first schedule (896 s of tests in 7 min 58 s of wall time,
 # one run).
-_HEAVIEST_FIRST = ("test_estimate.py", "test_stages.py", "test_screen.py", "test_diagnose.py", "test_simulate.py",
-                   "test_relax.py", "test_blocks.py", "test_cli.py", "test_filters.py", "test_fit.py")
+_HEAVIEST_FIRST = ("test_estimate.py", "test_screen.py", "test_diagnose.py", "test_stages.py", "test_whatif.py",
+                   "test_verdict.py", "test_relax.py", "test_simulate.py", "test_cli.py", "test_filters.py")
 
 
 def pytest_collection_modifyitems(items):
