@@ -173,7 +173,18 @@ def test_held_out_note_flags_a_model_that_does_not_carry_to_new_data():
     assert held_out_note(40.0, 80.0, 100) == "" and held_out_note(np.nan, 80.0, 100) == ""
 
 
-def test_host_fit_reports_and_rejects_bad_input(loops):
+def test_host_fit_rejects_bad_input(loops):
+    lp = loops[0]
+    op = np.asarray(lp.op).copy()
+    op[5] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        js.fit(op, np.asarray(lp.pv), settings=SMALL)
+    with pytest.raises(ValueError, match="too short|at least"):
+        js.fit(np.asarray(lp.op)[:100], np.asarray(lp.pv)[:100], settings=SMALL)
+
+
+@pytest.mark.slow
+def test_host_fit_reports(loops):
     lp = loops[0]
     r = js.fit(np.asarray(lp.op), np.asarray(lp.pv), validate=0.25, settings=SMALL, name="syn")
     d = r.to_json()
@@ -184,12 +195,6 @@ def test_host_fit_reports_and_rejects_bad_input(loops):
     assert fam["physical"]["bic"] is not None and fam["physical"]["foe"] > 0
     assert fam["spline"]["bic"] is None or fam["physical"]["bic"] < fam["spline"]["bic"]
     assert d["note"] == "; ".join(r.notes)
-    op = np.asarray(lp.op).copy()
-    op[5] = np.nan
-    with pytest.raises(ValueError, match="NaN"):
-        js.fit(op, np.asarray(lp.pv), settings=SMALL)
-    with pytest.raises(ValueError, match="too short|at least"):
-        js.fit(np.asarray(lp.op)[:100], np.asarray(lp.pv)[:100], settings=SMALL)
 
 
 @pytest.mark.slow

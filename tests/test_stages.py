@@ -118,24 +118,24 @@ def test_spline_candidates_equal_single_candidate_calls(sticky):
     assert bool(jnp.all(jnp.isfinite(grid.foe)))
 
 
-def test_physical_fit_finds_s_and_j(sticky):
-    """Kano S, J recovered near the truth (10, 2) on a 600-sample noisy loop. The
-    wider interval grid (`interval_span`) changes only the intervals: the same point
-    and loss as without it, intervals that contain the narrow ones, and here the truth.
-    A memory budget that splits the grid and the final output-error fits into
-    chunks (as on a long record) changes nothing."""
+def _physical_fits(sticky, variants):
     op, y, u = sticky
     w = jnp.ones_like(y)
     fits = []
-    for span, budget in ((4.0, 10**8), (0.0, 10**8), (4.0, 4 * 600 * FIT_BYTES_PER_SAMPLE)):
+    for span, budget in variants:
         pset = js.PhysicalSettings(num_S=31, num_J=6, starts=3, refine=7, refine_S=21, final=3, line=11, rounds=1,
                                    polish_starts=2, init_count=3, oe_steps=20, interval_span=span,
                                    memory_budget=budget)
         fitted = jax.jit(lambda op, y, w, lo, hi: fit_physical(op, y, w, lo, hi, pset))
         fits.append(fitted(op, y, w, op.min(), op.max()))
-    fit, narrow, chunked = fits
-    for name in ("S", "J", "v_oe", "S_interval", "J_interval"):
-        np.testing.assert_allclose(getattr(chunked, name), getattr(fit, name), rtol=1e-12)
+    return fits
+
+
+def test_physical_fit_finds_s_and_j(sticky):
+    """Kano S, J recovered near the truth (10, 2) on a 600-sample noisy loop. The
+    wider interval grid (`interval_span`) changes only the intervals: the same point
+    and loss as without it, intervals that contain the narrow ones, and here the truth."""
+    fit, narrow = _physical_fits(sticky, ((4.0, 10**8), (0.0, 10**8)))
     assert abs(float(fit.S) - 10.0) < 0.6
     assert abs(float(fit.J) - 2.0) < 0.8
     for name in ("S", "J", "v_oe"):
@@ -146,6 +146,15 @@ def test_physical_fit_finds_s_and_j(sticky):
     assert float(fit.S_interval[0]) <= float(fit.S) <= float(fit.S_interval[1])
     assert float(fit.S_interval[0]) <= 10.0 <= float(fit.S_interval[1])
     assert float(fit.J_interval[0]) <= 2.0 <= float(fit.J_interval[1])
+
+
+@pytest.mark.slow
+def test_physical_fit_memory_budget_changes_nothing(sticky):
+    """A memory budget that splits the grid and the final output-error fits into
+    chunks (as on a long record) changes nothing."""
+    fit, chunked = _physical_fits(sticky, ((4.0, 10**8), (4.0, 4 * 600 * FIT_BYTES_PER_SAMPLE)))
+    for name in ("S", "J", "v_oe", "S_interval", "J_interval"):
+        np.testing.assert_allclose(getattr(chunked, name), getattr(fit, name), rtol=1e-12)
 
 
 def test_physical_fit_tries_longer_dead_times():
