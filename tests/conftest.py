@@ -31,14 +31,14 @@ jax.config.update("jax_enable_x64", True)
 
 ISDB = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "isdb"
 
-# The test files, heaviest first (seconds of the default run, `-m "not slow"`, on a
-# cold compilation cache with the ISDB folder present: 234, 149, 123, 115, 93, 70;
-# the rest take under 40). With `--no-loadscope-reorder` (pyproject's addopts)
-# xdist hands whole files to the two workers in collection order as each frees up,
-# so this is a longest-first schedule (896 s of tests in 7 min 58 s of wall time,
-# one run).
-_HEAVIEST_FIRST = ("test_estimate.py", "test_screen.py", "test_diagnose.py", "test_stages.py", "test_whatif.py",
-                   "test_verdict.py", "test_relax.py", "test_simulate.py", "test_cli.py", "test_filters.py")
+# The test files, heaviest first (seconds of the default run's 60 slowest test phases,
+# `-m "not slow"`, on a cold compilation cache in a fresh virtual environment with the
+# ISDB folder present: 188, 139, 128, 102, 84, 81, 52, 35; the rest take under 10).
+# With `--no-loadscope-reorder` (pyproject's addopts) xdist hands whole files to the
+# two workers in collection order as each frees up, so this is a longest-first
+# schedule (8 min 45 s of wall time, one run on a 2-core CPU).
+_HEAVIEST_FIRST = ("test_screen.py", "test_estimate.py", "test_stages.py", "test_diagnose.py", "test_verdict.py",
+                   "test_whatif.py", "test_relax.py", "test_simulate.py", "test_whatif_cli.py", "test_filters.py")
 
 
 def pytest_collection_modifyitems(items):
