@@ -61,3 +61,15 @@ def test_drift_power_runs(monkeypatch, capsys):
     row = out["steps"]["0.3"]
     assert set(row) >= {"rule_power", "glr_power_0.01", "oracle_power_0.05"}
     assert all(0.0 <= v <= 1.0 for v in row.values())
+
+
+def test_compare_screens_names_what_differs(monkeypatch, capsys, tmp_path):
+    loops = [{"name": "a", "verdict": "stiction", "stiction_probability": 0.9, "status": "ok", "crossval": [1.0, 2.0]},
+             {"name": "b", "verdict": "no_stiction", "stiction_probability": 0.1, "status": "ok", "S": 1.0}]
+    other = [dict(loops[0]), {**loops[1], "S": 1.5}]
+    for name, entries in (("one.json", loops), ("two.json", other)):
+        (tmp_path / name).write_text(json.dumps({"loops": entries}))
+    _run(monkeypatch, "compare_screens.py", str(tmp_path / "one.json"), str(tmp_path / "two.json"))
+    out = capsys.readouterr().out
+    assert "2 loops: 1 identical in every field" in out
+    assert "verdict: the same on every loop" in out and "b: 1 fields differ, e.g. S 1.0 / 1.5" in out
