@@ -254,7 +254,8 @@ def _whatif_text(e: dict) -> str:
 
 
 def screen_settings(args):
-    """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`, `--chunk`)."""
+    """The `ScreenSettings` of `screen`'s options (`--full-search`, `--max-delay`, `--threads`, `--chunk`,
+    `--threshold`)."""
     from ._estimate.settings import FULL_SEARCH_ESTIMATE, SCREEN_ESTIMATE
     from ._screen.settings import ScreenSettings
 
@@ -266,8 +267,12 @@ def screen_settings(args):
         from ._whatif.settings import WhatIfSettings
 
         whatif = WhatIfSettings()
+    from ._verdict.settings import VerdictSettings
+
+    threshold = getattr(args, "threshold", None)
+    verdict = VerdictSettings() if threshold is None else VerdictSettings(threshold=threshold)
     return ScreenSettings(estimate=estimate, threads=args.threads or 0, chunk=getattr(args, "chunk", None) or 0,
-                          whatif=whatif)
+                          whatif=whatif, verdict=verdict)
 
 
 def cmd_screen(args):
@@ -557,7 +562,10 @@ def build_parser():
                         "the ranking")
     s.add_argument("--chunk", type=_whole, default=None, metavar="N",
                    help="loops per batched call (default: sized to the machine: 2 on a CPU, up to 1024 on a GPU "
-                        "as its memory allows); the results do not depend on it")
+                        "as its memory allows); the verdicts do not depend on it")
+    s.add_argument("--threshold", type=_probability, default=None, metavar="P",
+                   help="call a loop sticky from this stiction probability (default 0.5; lower finds more sticky "
+                        "valves and raises more false alarms)")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
@@ -598,6 +606,16 @@ def build_parser():
                         "give each a `valve`), or a CSV with name and tag columns; default: a `tag` column, else "
                         "the file name up to its last _ or -")
     t.set_defaults(func=cmd_trend)
+    return p
+
+
+def _probability(text: str) -> float:
+    try:
+        p = float(text)
+    except ValueError:
+        p = float("nan")
+    if not 0.0 < p < 1.0:
+        raise argparse.ArgumentTypeError(f"must be a probability strictly between 0 and 1, got {text!r}")
     return p
 
 

@@ -229,3 +229,15 @@ def test_screen_search_options_choose_the_estimator_profile():
     assert full == Settings(use_spline=False) and full.physical.arx_order > SCREEN_ESTIMATE.physical.arx_order
     assert settings("--full-search", "--max-delay", "6") == Settings(use_spline=False).with_max_delay(6)
     assert settings("--max-delay", "6") == SCREEN_ESTIMATE.with_max_delay(6)
+
+
+def test_screen_threshold_sets_the_verdicts_probability():
+    from jaxstiction.internal import build_parser, screen_settings
+
+    def parsed(*argv):
+        return screen_settings(build_parser().parse_args(["screen", "x.csv", *argv])).verdict
+
+    assert parsed() == js.VerdictSettings() and parsed("--threshold", "0.2").threshold == 0.2
+    for bad in ("0", "1", "1.5", "x"):
+        res = run("screen", "x.csv", "--threshold", bad)
+        assert res.returncode == 2 and "--threshold" in res.stderr and "probability" in res.stderr
