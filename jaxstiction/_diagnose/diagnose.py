@@ -245,6 +245,10 @@ def _stiction_verdict(loop, b: _Baseline) -> dict:
             "reason": reason if which == "inconclusive" else ""}
 
 
+# The two names of a sticky valve: a band with a slip jump, and one without
+VALVE_EFFECTS = ("stiction", "deadband")
+
+
 def _screen_policy(verdict: str, findings, stiction: dict) -> tuple[str, str]:
     """One stiction policy for `diagnose` (no nominal model) and the screen: the
     valve is sticky when the screen's verdict says so. A sticky valve is named
@@ -255,16 +259,15 @@ def _screen_policy(verdict: str, findings, stiction: dict) -> tuple[str, str]:
     data-quality gate could not judge the record), the diagnosis' own held-out proof
     decides. Returns the verdict and a note saying what changed or why ("" when
     nothing needs saying)."""
-    valve = ("stiction", "deadband")
-    if stiction["verdict"] == "stiction" and verdict not in valve:
+    if stiction["verdict"] == "stiction" and verdict not in VALVE_EFFECTS:
         named = "stiction" if stiction["slip_identified"] else "deadband"
         return named, (f"the stiction verdict calls the valve sticky (probability {stiction['probability']:.2f}): "
                        f"named {named} instead of {verdict}")
-    if stiction["verdict"] == "inconclusive" and verdict in valve:
+    if stiction["verdict"] == "inconclusive" and verdict in VALVE_EFFECTS:
         return verdict, (f"the stiction verdict is inconclusive ({stiction['reason']}): {verdict} rests on "
                          "the diagnosis' own held-out proof")
-    if stiction["verdict"] == "no_stiction" and verdict in valve:
-        others = [f.effect for f in findings if f.accepted and f.effect not in valve]
+    if stiction["verdict"] == "no_stiction" and verdict in VALVE_EFFECTS:
+        others = [f.effect for f in findings if f.accepted and f.effect not in VALVE_EFFECTS]
         named = others[0] if others else "none"
         why = stiction["reason"] or f"probability {stiction['probability']:.2f}"
         return named, f"the stiction verdict does not call the valve sticky ({why}): {verdict} is not named"
@@ -276,11 +279,10 @@ def _valve_demoted(findings, model, base: LoopModel):
     valve not sticky: an accepted stiction or deadband finding is no longer accepted
     (`rejected_by`: `stiction_verdict`), and the model is that of the next accepted
     finding, or the nominal refitted with a linear valve."""
-    valve = ("stiction", "deadband")
-    if not any(f.accepted and f.effect in valve for f in findings):
+    if not any(f.accepted and f.effect in VALVE_EFFECTS for f in findings):
         return findings, model
     out = [dataclasses.replace(f, accepted=False, evidence={**f.evidence, "rejected_by": "stiction_verdict"})
-           if f.accepted and f.effect in valve else f for f in findings]
+           if f.accepted and f.effect in VALVE_EFFECTS else f for f in findings]
     rest = [f for f in out if f.accepted and f.model is not None]
     return out, rest[0].model if rest else base
 
