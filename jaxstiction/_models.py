@@ -20,7 +20,7 @@ from jaxtyping import Array, Float
 from ._blocks import _f, AbstractBlock, run_chain
 from ._filters import lfilter, steady_state
 from ._linalg import lstsq
-from ._misc import chunked_vmap
+from ._misc import chunked_vmap, first_min
 from ._spline import scale_input, spline_basis
 
 
@@ -214,7 +214,7 @@ class LoopModel(eqx.Module):
         runs on the samples before it only: the same answer for less work.
         """
         states, errs = self.initial_candidates(op, pv, weights, count=count, window=window)
-        return jax.tree.map(lambda t: t[jnp.argmin(errs)], states)
+        return jax.tree.map(lambda t: t[first_min(errs)], states)
 
     def initial_candidates(self, op, pv, weights, *, count: int = 16, window: int | None = None):
         """`(states, errors)`: every candidate initial state that

@@ -104,7 +104,9 @@ from ._linalg import is_stable as is_stable, lstsq as lstsq
 from ._loop import bucket_length as bucket_length, pad as pad
 from ._misc import (
     chunked_vmap as chunked_vmap,
+    coarse as coarse,
     default_threads as default_threads,
+    first_min as first_min,
     MAX_THREADS as MAX_THREADS,
     release_programs_near_map_limit as release_programs_near_map_limit,
     thread_map as thread_map,
@@ -124,6 +126,7 @@ from ._scenarios import (
 )
 from ._screen import causes as causes
 from ._screen.batch import (
+    _record as screen_entry,
     auto_batch as auto_batch,
     chunk_size as chunk_size,
     MAX_CHUNK as MAX_CHUNK,

@@ -8,6 +8,7 @@ import html
 import json
 import os
 
+import jax
 import numpy as np
 import pytest
 from helpers import run
@@ -15,7 +16,17 @@ from test_estimate import _loop, SMALL
 
 import jaxstiction as js
 from jaxstiction import fitness, rank
-from jaxstiction.internal import bucket_length, chunk_size, FEATURES, GATES, HARD, predicted, residual_line, runaway
+from jaxstiction.internal import (
+    bucket_length,
+    chunk_size,
+    FEATURES,
+    GATES,
+    HARD,
+    predicted,
+    residual_line,
+    runaway,
+    screen_entry,
+)
 
 
 SCREEN = js.ScreenSettings(estimate=SMALL, chunk=3)
@@ -312,10 +323,11 @@ def test_a_runaway_simulation_gives_no_model_evidence(fleet):
     _, good, _ = fleet
     f = js.estimate(good[1], SMALL)
     settings = js.VerdictSettings(prediction_band=2.0, trend_degree=None)  # test_verdict_rule's: compiled once
-    names = ("fitness_physical", "fitness_physical_estimation", "fitness_linear", "fitness_linear_estimation")
+    names = ("fitness", "fitness_physical", "fitness_physical_estimation", "fitness_linear",
+             "fitness_linear_estimation", "fitness_deadband")
 
     def ran_away(value):
-        return eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + value] * 4)
+        return eqx.tree_at(lambda m: [getattr(m, n) for n in names], f, [f.fitness_linear * 0 + value] * len(names))
 
     huge, overflow = (js.verdict(ran_away(v), good[1], settings) for v in (-1e30, -np.inf))
     assert bool(runaway(ran_away(-1e30))) and bool(runaway(ran_away(-np.inf))) and not bool(runaway(f))
@@ -328,6 +340,12 @@ def test_a_runaway_simulation_gives_no_model_evidence(fleet):
         assert not bool(v.model_wins) and not bool(v.slip_identified)
         judged = GATES[int(v.gate)] not in HARD
         assert bool(v.stiction_detected) == (judged and float(v.probability) >= settings.threshold)
+    # and one screen entry: a runaway simulation's numbers are rounding, reported as null
+    op, pv = np.asarray(good[1].op), np.asarray(good[1].pv)
+    entries = [screen_entry("L", None, op, pv, 1.0, *jax.tree.map(np.asarray, (ran_away(v), ver)), SMALL, False,
+                            settings) for v, ver in ((-1e30, huge), (-np.inf, overflow))]
+    assert entries[0] == entries[1] and entries[0]["fitness"] is None and entries[0]["fitness_kano"] is None
+    assert entries[0]["verdict"] in ("stiction", "no_stiction", "inconclusive") and "runs away" in entries[0]["note"]
 
 
 @pytest.mark.slow
@@ -483,6 +501,25 @@ def test_results_do_not_depend_on_the_chunk(fleet, screened):
         for key in ("stiction_probability", "fitness", "S", "J", "band_percent", "evidence"):
             if a.get(key) is not None:
                 assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-6), (a["name"], key)
+
+
+def test_selections_ignore_differences_in_the_last_bits():
+    """The estimator's choices (`first_min`, and `argsort` of `coarse` losses) treat
+    float64 values that agree to 7 significant digits as tied, and take the first:
+    a batch size that changes a loss by a few units in the last place cannot change
+    a choice, while a real difference still does."""
+    import jax.numpy as jnp
+
+    from jaxstiction.internal import coarse, first_min
+
+    loss = jnp.array([3.0, 1.0 + 4e-16, 1.0, 2.0])
+    assert int(jnp.argmin(loss)) == 2 and int(first_min(loss)) == 1
+    assert int(first_min(jnp.array([3.0, 1.0 + 1e-6, 1.0]))) == 2
+    assert [int(i) for i in jnp.argsort(coarse(loss))] == [1, 2, 3, 0]
+    grid = jnp.array([[2.0, 5.0 - 1e-14, 5.0], [7.0, 0.5, 0.5 + 1e-15]])
+    assert [int(i) for i in first_min(grid, axis=1)] == [0, 1]
+    assert [int(i) for i in first_min(-grid, axis=1)] == [1, 0]
+    assert coarse(jnp.arange(3)).dtype == jnp.arange(3).dtype  # integers are compared as they are
 
 
 def test_default_threads(monkeypatch):

@@ -21,7 +21,7 @@ from jaxtyping import Array
 from .._blocks import Kano
 from .._criteria import family_criteria, foe, score
 from .._loop import Loop
-from .._misc import chunked_vmap
+from .._misc import chunked_vmap, first_min
 from .._models import LinearProcess, LoopModel, pad_to, scaled_loop_model, SplineValve
 from .._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 from .hammerstein import candidate_knots, CandidateFit, fit_spline_candidates, HammersteinModel
@@ -88,7 +88,7 @@ def choose_family(bics, fitness_estimation):
     eligible = (fitness_estimation >= lin) | ~jnp.isfinite(lin)
     sound = jnp.any((fitness_estimation[:2] >= 0) & jnp.isfinite(bics[:2]))
     eligible = eligible.at[2].set(~((lin < 0) & sound))
-    return jnp.argmin(jnp.where(eligible & ~jnp.isnan(bics), bics, jnp.inf))
+    return first_min(jnp.where(eligible & ~jnp.isnan(bics), bics, jnp.inf))
 
 
 class Prepared(eqx.Module):
@@ -256,7 +256,7 @@ def _pick_spline(cand, sset: SplineSettings, count, dtype) -> _SplinePick:
     counts, and the family's FOE and BIC."""
     foe_grid = jnp.where(jnp.isfinite(cand.foe), cand.foe, jnp.inf)
     K = foe_grid.shape[1]
-    flat = jnp.argmin(foe_grid.ravel())
+    flat = first_min(foe_grid.ravel())
     ri, ki = flat // K, flat % K
     pick = jax.tree.map(lambda x: x[ri, ki], cand)
     knots, kmasks, counts = candidate_knots(sset, dtype)
@@ -272,7 +272,7 @@ def _pick_paper(cand, sset: SplineSettings, count, counts):
     count, no polish. Returns the count's index and the candidates there."""
     dof_p = 2 * sset.arx_order + counts
     foe_paper = jnp.where(jnp.isfinite(cand.v_oe_paper[0]), foe(cand.v_oe_paper[0], count, dof_p), jnp.inf)
-    lit = jnp.argmin(foe_paper)
+    lit = first_min(foe_paper)
     return lit, jax.tree.map(lambda x: x[0, lit], cand)
 
 
@@ -378,12 +378,12 @@ def _null_models(p: Prepared, settings: Settings, ph: _PhysicalFamily, none: Kan
         ds = jnp.concatenate([ds, jnp.full((len(DEADBAND_WIDTHS),), ph.delay)])
     # as many at once as the memory budget allows (all of them up to ~30 000 samples)
     null_fits, v_null = chunked_vmap(oe_at, (xs, wbs, ds), fits_at_once(N, pset.memory_budget))
-    bl = jnp.argmin(v_null[:L])
+    bl = first_min(v_null[:L])
     m_lin = as_model(jax.tree.map(lambda t: t[bl], null_fits), v_null[bl], none)
     dof_lin = 2 * pset.order + 1
     foe_lin, bic_lin = family_criteria(v_null[bl], count, dof_lin)
     if settings.use_physical:
-        bd = jnp.argmin(v_null[L:])
+        bd = first_min(v_null[L:])
         m_db = as_model(jax.tree.map(lambda t: t[L + bd], null_fits), v_null[L + bd],
                         Kano(S_db[bd], jnp.zeros((), dtype)))
     else:

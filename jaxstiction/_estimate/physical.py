@@ -16,7 +16,7 @@ from jaxtyping import Array, Float
 from .._blocks import Kano
 from .._filters import lagged, lfilter, steady_state
 from .._linalg import gram_cholesky, HouseholderQR, is_stable, lstsq as _lstsq
-from .._misc import chunked_vmap
+from .._misc import chunked_vmap, coarse, first_min
 from .._spline import scale_input
 from .reduce import LowOrder
 from .settings import PhysicalSettings
@@ -241,7 +241,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
             return charged(arx_loss(x, y, weights, settings.arx_order, ds, settings.max_delay, first), wb)
 
         loss = jax.vmap(one)(cands)  # (cands, delays)
-        flat = jnp.argmin(loss.ravel())
+        flat = first_min(loss.ravel())
         return jnp.min(loss), ds[flat % ds.shape[0]], cands[flat // ds.shape[0]]
 
     def search(S, J, ds=delays, cands=jnp.array([default])):
@@ -257,7 +257,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     S1 = jnp.repeat(Sg, settings.num_J)
     J1 = S1 * jnp.tile(fr, settings.num_S)
     l1, d1, _ = search(S1, J1)
-    top = jnp.argsort(l1)[: settings.starts]
+    top = jnp.argsort(coarse(l1))[: settings.starts]
     # The delay barely interacts with S and J: the best stage-1 point's is kept.
     delay = d1[top[0]][None]
     # Stage 2: around each of the best stage-1 points, S on a fine grid (the loss is
@@ -275,7 +275,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     # record), finer than any affordable grid: refine the best point of each of the
     # `polish_starts` best stage-2 blocks by alternating fine line searches in S and J.
     R2 = settings.refine * settings.refine_S
-    blk_best = jnp.argmin(l2.reshape(settings.starts, R2), axis=1) + jnp.arange(settings.starts) * R2
+    blk_best = first_min(l2.reshape(settings.starts, R2), axis=1) + jnp.arange(settings.starts) * R2
     lb = l2[blk_best]
     # overlapping blocks often share their best point: keep distinct points only
     same = (jnp.abs(S2[blk_best][:, None] - S2[blk_best][None, :]) < 1e-9) & (
@@ -283,7 +283,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     earlier = (lb[None, :] < lb[:, None]) | ((lb[None, :] == lb[:, None]) & (
         jnp.arange(settings.starts)[None, :] < jnp.arange(settings.starts)[:, None]))
     lb = jnp.where(jnp.any(same & earlier, axis=1), jnp.inf, lb)
-    order = jnp.argsort(lb)[: settings.polish_starts]
+    order = jnp.argsort(coarse(lb))[: settings.polish_starts]
     pick = blk_best[order]
     s0, j0, dJk = S2[pick], J2[pick], dJ[order]
     rl = jnp.linspace(-1.0, 1.0, settings.line, dtype=dtype)
@@ -300,7 +300,7 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
                        jnp.clip(j0[:, None] + dJk[:, None] * rl[None, :], 0.0, None))
         Jl = jnp.minimum(Jl, Sl)
         ll, _, cl = search(Sl.ravel(), Jl.ravel(), delay, starts_all)
-        a = jnp.argmin(ll.reshape(Sl.shape), axis=1)[:, None]
+        a = first_min(ll.reshape(Sl.shape), axis=1)[:, None]
         pick = lambda g: jnp.take_along_axis(g, a, axis=1)[:, 0]  # noqa: E731
         return pick(Sl), pick(Jl), pick(cl.reshape(Sl.shape))
 
@@ -328,14 +328,14 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     fits = fits_at_once(op.shape[0], settings.memory_budget)
     (models, noises), v, res = chunked_vmap(
         fine, (Sf.ravel(), Jf.ravel(), jnp.repeat(delay_k, F), jnp.repeat(c0, F)), fits)
-    kbest = jnp.argmin(jnp.min(v.reshape(K, F), axis=1))
+    kbest = first_min(jnp.min(v.reshape(K, F), axis=1))
     sel = kbest * F + jnp.arange(F)
     models, noises, res = jax.tree.map(lambda t: t[sel], (models, noises, res))
     v, Sf, Jf = v[sel], Sf[kbest], Jf[kbest]
     delay = delay_k[kbest]
     start = c0[kbest]
     hj = hjk[kbest]
-    b = jnp.argmin(v)
+    b = first_min(v)
     step = 2.0 / (settings.final - 1)
     # Profile likelihood: N_eff log(V / Vmin) <= chi2(2, 95%) = 5.99, with N_eff
     # corrected for residual autocorrelation (output-error residuals are coloured).

@@ -17,6 +17,7 @@ from jaxtyping import Array, Float
 
 from .._filters import freq_response, lagged, lfilter
 from .._linalg import HouseholderQR, is_stable, lstsq as _lstsq
+from .._misc import first_min
 
 
 def welch(x, e, seg: int, weights=None):
@@ -145,7 +146,7 @@ def reduce_model(
         return m, crit, asyc, stable, sol.result
 
     models, crit, asyc, stable, result = jax.vmap(one)(orders, delays)
-    best = jnp.argmin(asyc)
+    best = first_min(asyc)
     return ReductionSolution(models, crit, asyc, stable, result, best)
 
 

@@ -29,6 +29,7 @@ from jaxtyping import Array, Float, Int
 
 from .._filters import lagged
 from .._linalg import lstsq as _lstsq, qr_r, spd_solve
+from .._misc import first_min
 from .gram import _DROP, GramProblem, lag_gram
 
 
@@ -206,7 +207,7 @@ def _varpro_step(beta, red: GramProblem):
     cand = jnp.concatenate([d_n, 0.5 * d_n, lengths[:, None] * d_gn[None, :], jnp.zeros((1, p), H.dtype)])
     losses = jax.vmap(lambda d: red.loss(beta + d))(cand)
     losses = jnp.where(jnp.isfinite(losses), losses, jnp.inf)
-    return beta + cand[jnp.argmin(losses)]
+    return beta + cand[first_min(losses)]
 
 
 def _anderson(prob, model: ARXHammerstein, steps: int, memory: int, rtol, atol):

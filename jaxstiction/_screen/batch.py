@@ -108,6 +108,16 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
               "its residual: a disturbance from elsewhere, not the valve's cycle") if ok and bool(ver.line_persists)
              else ""]
     ind, g = ver.indicators, ver.gate_measures
+
+    def sim(v):
+        # a simulation that ran away: its fitness is rounding (1e30 at one chunk size,
+        # an overflow at another), and so is any evidence that compares it, so both
+        # are reported as null, as an overflow is
+        return _r(v) if abs(float(v)) <= -vset.runaway_fitness else None
+
+    def gain(v):
+        return None if ran_away else sim(v)
+
     gate = GATES[int(ver.gate)]
     reason = verdict_reason(ver, vset)
     which = VERDICTS[int(ver.verdict)]
@@ -143,19 +153,19 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
         # the Kano fit's band, which the verdict judges, whichever family `estimate`
         # chose (the linear valve's band is 0)
         "band_percent": _r(fit.S if math.isfinite(float(fit.S)) else fit.band_percent),
-        "fitness": _r(fit.fitness),
+        "fitness": sim(fit.fitness),
         "S": _r(fit.S),
         "J": _r(fit.J),
-        "evidence": _r(ver.evidence),
-        "evidence_estimation": _r(ver.evidence_estimation),
-        "evidence_prediction": _r(ver.evidence_prediction),
-        "evidence_prediction_estimation": _r(ver.evidence_prediction_estimation),
-        "slip_evidence": _r(ver.slip_evidence),
-        "slip_evidence_estimation": _r(ver.slip_evidence_estimation),
+        "evidence": gain(ver.evidence),
+        "evidence_estimation": gain(ver.evidence_estimation),
+        "evidence_prediction": gain(ver.evidence_prediction),
+        "evidence_prediction_estimation": gain(ver.evidence_prediction_estimation),
+        "slip_evidence": gain(ver.slip_evidence),
+        "slip_evidence_estimation": gain(ver.slip_evidence_estimation),
         "band_fraction": _r(ver.band_fraction, 4),
-        "fitness_kano": _r(fit.fitness_physical),
-        "fitness_linear": _r(fit.fitness_linear),
-        "fitness_deadband": _r(fit.fitness_deadband),
+        "fitness_kano": sim(fit.fitness_physical),
+        "fitness_linear": sim(fit.fitness_linear),
+        "fitness_deadband": sim(fit.fitness_deadband),
         "oscillation": _r(ver.oscillation),
         "period_samples": _r(ver.period, 1),
         "oscillation_kano": _r(ver.oscillation_kano),

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 
 from .._blocks import Kano
 from .._linalg import lstsq
+from .._misc import first_min
 
 
 BANDS = (0.03, 0.08, 0.15, 0.3, 0.5, 0.7, 0.9)  # S as a fraction of the OP range (a limit cycle moves OP by about S)
@@ -99,10 +100,10 @@ def crossval_gain(op, pv, mask, *, folds: int = 4, horizon: int = 5, ar_order: i
             scores = [_fit_and_score(pv, x, train, test, ar_order, input_order, d, horizon) for d in delays]
             tr = jnp.stack([s[0] for s in scores])
             te = jnp.stack([s[1] for s in scores])
-            i = jnp.argmin(tr)
+            i = first_min(tr)
             return tr[i], te[i]
 
         tr, te = jax.vmap(one)(paths)
-        best = jnp.argmin(tr[1:]) + 1
+        best = first_min(tr[1:]) + 1
         gains.append(100.0 * (1.0 - te[best] / jnp.maximum(te[0], 1e-300)))
     return jnp.stack(gains)
