@@ -72,7 +72,7 @@ from ._estimate.physical import (
     PhysicalFit as PhysicalFit,
     valve_from as valve_from,
 )
-from ._estimate.programs import simulations_of as simulations_of
+from ._estimate.programs import _source_hash as source_hash, simulations_of as simulations_of
 from ._estimate.reduce import (
     asymptotic_weight as asymptotic_weight,
     fit_noise_model as fit_noise_model,

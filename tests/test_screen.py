@@ -489,18 +489,12 @@ def test_threads_give_what_one_call_at_a_time_gives(fleet):
 
 @pytest.mark.slow
 def test_results_do_not_depend_on_the_chunk(fleet, screened):
-    """One loop per batched call gives the verdicts, and to rounding the numbers, of
-    the fixture's three loops per call."""
+    """One loop per batched call gives the fixture's entries at three loops per call,
+    every field: the batch's size changes a loss's last bits, and the estimator's
+    choices do not see them (`first_min`)."""
     folder, _, _ = fleet
     one = js.screen(folder, dataclasses.replace(SCREEN, chunk=1)).to_json()["loops"]
-    three = screened.to_json()["loops"]
-    assert [e["name"] for e in one] == [e["name"] for e in three]
-    for a, b in zip(one, three):
-        assert (a["status"], a.get("verdict"), a["stiction_detected"]) == (b["status"], b.get("verdict"),
-                                                                             b["stiction_detected"])
-        for key in ("stiction_probability", "fitness", "S", "J", "band_percent", "evidence"):
-            if a.get(key) is not None:
-                assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-6), (a["name"], key)
+    assert one == screened.to_json()["loops"]
 
 
 def test_selections_ignore_differences_in_the_last_bits():

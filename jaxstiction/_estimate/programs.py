@@ -65,11 +65,14 @@ def use_program_cache(path: str | os.PathLike | None):
 
 
 @functools.cache
-def _source_hash() -> str:
-    """A hash of every source file of the package, its subpackages' too."""
+def _source_hash(exclude: tuple[str, ...] = ()) -> str:
+    """A hash of every source file of the package, its subpackages' too, but those
+    in `exclude` (paths relative to the package, e.g. `"_verdict/calibration.py"`)."""
     package = pathlib.Path(__file__).parents[1]
     h = hashlib.sha256()
     for f in sorted(package.rglob("*.py")):
+        if f.relative_to(package).as_posix() in exclude:
+            continue
         h.update(f.relative_to(package).as_posix().encode())
         h.update(f.read_bytes())
     return h.hexdigest()
