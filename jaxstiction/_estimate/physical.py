@@ -280,7 +280,8 @@ def fit_physical(op, y, weights, lo, hi, settings: PhysicalSettings = PhysicalSe
     # overlapping blocks often share their best point: keep distinct points only
     same = (jnp.abs(S2[blk_best][:, None] - S2[blk_best][None, :]) < 1e-9) & (
         jnp.abs(J2[blk_best][:, None] - J2[blk_best][None, :]) < 1e-9)
-    earlier = (lb[None, :] < lb[:, None]) | ((lb[None, :] == lb[:, None]) & (
+    lc = coarse(lb)
+    earlier = (lc[None, :] < lc[:, None]) | ((lc[None, :] == lc[:, None]) & (
         jnp.arange(settings.starts)[None, :] < jnp.arange(settings.starts)[:, None]))
     lb = jnp.where(jnp.any(same & earlier, axis=1), jnp.inf, lb)
     order = jnp.argsort(coarse(lb))[: settings.polish_starts]

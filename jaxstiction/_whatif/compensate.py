@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from .._misc import first_min
 from .._models import LoopModel
 from .closedloop import closed_loop, ClosedLoopRun, Knocker, loop_stats, LoopStats, SmoothKano
 from .controller import Controller
@@ -96,7 +97,7 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
     runs = _runs(model, controller, rp, ks)
     st = jax.vmap(stats)(runs)
     obj = _objective(st, base, w)
-    i = jnp.argmin(obj)
+    i = first_min(obj)
     pick = lambda t: t[i]  # noqa: E731
     knocker = jax.tree.map(pick, ks)
     return Design(knocker=knocker, objective=obj[i], grid_objective=obj, compensated=jax.tree.map(pick, st),

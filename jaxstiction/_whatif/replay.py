@@ -28,6 +28,7 @@ from jaxtyping import Array, Float, Int
 
 from .._filters import lfilter
 from .._loop import Loop
+from .._misc import first_min
 from .._models import InitialState, LoopModel
 from .controller import Controller
 
@@ -80,7 +81,7 @@ def initial_and_sync(model: LoopModel, op, pv, w, count: int):
     sample from which every plausible candidate's valve path agrees (see the module
     notes)."""
     states, errs = model.initial_candidates(op, pv, w, count=count)
-    best = jnp.argmin(errs)
+    best = first_min(errs)
     n_eff = jnp.maximum(jnp.sum(w), 1.0)
     plausible = n_eff * jnp.log(errs / jnp.maximum(errs[best], 1e-300)) <= PLAUSIBLE
     plausible = plausible.at[best].set(True)
