@@ -562,7 +562,7 @@ def build_parser():
                         "the ranking")
     s.add_argument("--chunk", type=_whole, default=None, metavar="N",
                    help="loops per batched call (default: sized to the machine: 2 on a CPU, up to 1024 on a GPU "
-                        "as its memory allows); the results do not depend on it")
+                        "as its memory allows); the results do not depend on it, but for --whatif's replays")
     s.add_argument("--threshold", type=_probability, default=None, metavar="P",
                    help="call a loop sticky from this stiction probability (default 0.5; lower finds more sticky "
                         "valves and raises more false alarms)")
