@@ -488,6 +488,32 @@ def test_threads_give_what_one_call_at_a_time_gives(fleet):
 
 
 @pytest.mark.slow
+def test_a_chunk_that_crashes_costs_only_the_loop_that_crashed(fleet, screened, monkeypatch):
+    """A batched call that fails as a whole (an XLA error, memory) is run again one
+    loop at a time: the loop that made it fail gets a one-line status and an
+    `inconclusive` verdict, the others the entries of a screen without the crash."""
+    import importlib
+
+    batch = importlib.import_module("jaxstiction._screen.batch")
+    folder, good, _ = fleet
+    real, marker = batch._batch, np.asarray(good[1].op)[:50]
+
+    def crashing(loops, settings, vset):
+        if any(np.array_equal(op[:50], marker) for op in np.asarray(loops.op)):
+            raise RuntimeError("RESOURCE_EXHAUSTED: out of memory\nwhile compiling")
+        return real(loops, settings, vset)
+
+    monkeypatch.setattr(batch, "_batch", crashing)
+    got = {e["name"]: e for e in js.screen(folder, SCREEN).to_json()["loops"]}
+    want = {e["name"]: e for e in screened.to_json()["loops"]}
+    crashed = got.pop("good1")
+    assert crashed["status"] == "fit failed: RuntimeError: RESOURCE_EXHAUSTED: out of memory while compiling"
+    assert crashed["verdict"] == "inconclusive" and crashed["stiction_detected"] is False
+    del want["good1"]
+    assert got == want
+
+
+@pytest.mark.slow
 def test_results_do_not_depend_on_the_chunk(fleet, screened):
     """One loop per batched call gives the fixture's entries at three loops per call,
     every field: the batch's size changes a loss's last bits, and the estimator's
