@@ -104,6 +104,10 @@ class WhatIfSettings(eqx.Module):
       (see [`jaxstiction.WhatIf`][]).
     - `compensate`: [`jaxstiction.CompensateSettings`][] of the knocker design.
     - `seed`: of the draws.
+    - `refine`: refit the fit's process for the replay by prediction error with a
+      tenth-order AR noise model, on the fitted valve path (kept when it lowers that
+      criterion and leaves a stable process stable).
+      `whatif_model` replays the model it is given as it is.
     """
 
     draws: int = eqx.field(static=True, default=24)
@@ -114,6 +118,7 @@ class WhatIfSettings(eqx.Module):
     min_samples: int = eqx.field(static=True, default=200)
     compensate: CompensateSettings = CompensateSettings()
     seed: int = eqx.field(static=True, default=0)
+    refine: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         check_counts(self, positive=("init_count",), nonnegative=("draws", "seed", "min_samples"))

@@ -33,7 +33,8 @@ from .._models import LoopModel
 from .closedloop import closed_loop, ClosedLoopRun, Knocker, loop_stats, LoopStats, settling_time
 from .compensate import Compensation, design_knocker, METHODS
 from .controller import Controller, identify_controller
-from .replay import Replay, replay, setpoints
+from .refine import refine_process
+from .replay import initial_and_sync, Replay, replay, setpoints
 from .settings import CompensateSettings, WhatIfSettings
 from .uncertainty import draw_models, free_parameters, with_valve
 
@@ -214,7 +215,18 @@ def _whatif(fit: LoopFit, loop: Loop, settings: WhatIfSettings = WhatIfSettings(
     is not one unbatched `Loop`.
     """
     _check(fit, loop)
-    return _whatif_model(fit.physical, loop, fit.S_interval, fit.J_interval, settings, controller=controller)
+    model = _refined(fit.physical, loop, settings.init_count) if settings.refine else fit.physical
+    return _whatif_model(model, loop, fit.S_interval, fit.J_interval, settings, controller=controller)
+
+
+def _refined(model: LoopModel, loop: Loop, init_count: int) -> LoopModel:
+    """`model` with its process refitted for the replay (`refine_process`) on the
+    valve path from its best initial state on the record."""
+    dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
+    op, pv = jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype)
+    w = (jnp.asarray(loop.mask) > 0).astype(dtype)
+    initial, _ = initial_and_sync(model, op, pv, w, init_count)
+    return refine_process(model, op, pv, w, initial)[0]
 
 
 def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings: WhatIfSettings = WhatIfSettings(),
@@ -263,9 +275,11 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
         q = jnp.asarray([(1 - settings.level) / 2, (1 + settings.level) / 2], dtype)
 
         def interval(x, x0):
-            # the fit itself is one of the models the intervals span
+            # the fit itself is one of the models the intervals span, and lies inside
+            # them however the draws fall around it
             x = jnp.concatenate([jnp.where(ok, x, jnp.nan), x0[None]])
-            return jnp.nanquantile(x, q)
+            lo, hi = jnp.nanquantile(x, q)
+            return jnp.stack([jnp.minimum(lo, x0), jnp.maximum(hi, x0)])
 
         base = (p.as_is_stats, p.repaired_stats, design.compensated)
         ivs = [jax.tree.map(lambda t, t0, j=j: interval(t[:, j], t0), st, base[j]) for j in range(3)]
@@ -302,14 +316,14 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
 
 def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = CompensateSettings(), *,
                 controller: Controller | None = None, init_count: int = 32,
-                reversal_threshold: float = 0.1, min_samples: int = 200) -> Compensation:
+                reversal_threshold: float = 0.1, min_samples: int = 200, refine: bool = True) -> Compensation:
     r"""Design a knocker for one loop on its identified closed loop (see
     `jaxstiction._whatif.compensate`).
 
     **Arguments:** `fit`, `loop`, `controller` as for [`jaxstiction.whatif`][];
     `settings`: [`jaxstiction.CompensateSettings`][] (the grid, the travel weight,
-    `method="grid"` or `"gradient"`); `init_count`, `reversal_threshold` as in
-    [`jaxstiction.WhatIfSettings`][].
+    `method="grid"` or `"gradient"`); `init_count`, `reversal_threshold`,
+    `min_samples` and `refine` as in [`jaxstiction.WhatIfSettings`][].
 
     **Returns:** a [`jaxstiction.Compensation`][]: the knocker, the predicted
     variability with and without it (and with a repaired valve), and the extra
@@ -318,7 +332,8 @@ def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = Compens
     **Raises:** `ValueError` as [`jaxstiction.whatif`][].
     """
     _check(fit, loop)
-    p = _prepare(fit.physical, loop, controller, init_count, reversal_threshold, min_samples)
+    model = _refined(fit.physical, loop, init_count) if refine else fit.physical
+    p = _prepare(model, loop, controller, init_count, reversal_threshold, min_samples)
     d = design_knocker(p.model, p.controller, p.replay, p.window, p.ts, p.as_is_stats, settings, reversal_threshold)
     a, r, c = p.as_is_stats, p.repaired_stats, d.compensated
     removable = a.error_std - r.error_std
