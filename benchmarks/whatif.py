@@ -310,6 +310,8 @@ def main():
     ap.add_argument("--no-oracle", action="store_true", help="skip the whatif of the true plant model")
     ap.add_argument("--init-count", type=int, default=WhatIfSettings().init_count,
                     help="WhatIfSettings.init_count (candidate initial valve states per direction)")
+    ap.add_argument("--no-refine", action="store_true",
+                    help="WhatIfSettings(refine=False): replay the fit's process as fitted, not refitted")
     ap.add_argument("--pad", action="store_true",
                     help="pad each loop to the screen's length bucket (masked), so loops of many lengths share a "
                          "few compiled programs (the fleet)")
@@ -323,7 +325,8 @@ def main():
         cases = [Fleet(s, lp) for s, lp in zip(args.seeds, realistic_fleet(args.seeds, "stiction"))]
     rows = []
     for c in cases:
-        r = one_loop(c, settings, WhatIfSettings(init_count=args.init_count), not args.no_oracle, designs, args.pad)
+        wset = WhatIfSettings(init_count=args.init_count, refine=not args.no_refine)
+        r = one_loop(c, settings, wset, not args.no_oracle, designs, args.pad)
         rows.append(r)
         if not args.json:
             print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f} J {r['J']:5.2f}/"
@@ -339,7 +342,7 @@ def main():
                   + f"  ({r['seconds_fit']:.1f} + {r['seconds_whatif']:.2f} s)", flush=True)
     res = summary(rows, designs)
     res["set"], res["estimator"], res["seeds"] = args.set, args.estimator, seeds_text(args.seeds)
-    res["init_count"] = args.init_count
+    res["init_count"], res["refine"] = args.init_count, not args.no_refine
     if args.json:
         print(json.dumps({"summary": res, "loops": rows}))
     else:
