@@ -95,10 +95,11 @@ def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> di
     if settings.draws == 0:
         notes.append("no models drawn (draws = 0): no intervals")
     elif not intervals:
-        notes.append(f"only {used} of {settings.draws} drawn models stayed finite: no intervals")
+        notes.append(f"only {used} of {settings.draws} drawn models stayed finite and fit the record as well as "
+                     "the chi-square bound allows: no intervals")
     elif used < settings.draws:
-        notes.append(f"{settings.draws - used} of {settings.draws} drawn models ran away and are left out of "
-                     "the intervals")
+        notes.append(f"{settings.draws - used} of {settings.draws} drawn models ran away or fit the record worse than "
+                     "the chi-square bound allows, and are left out of the intervals")
     a, r, c = (stats[s] for s in SCENARIOS)
     if usable and rec["error_std"] > 0 and abs(a["error_std"] / rec["error_std"] - 1) > 0.25:
         notes.append(f"the as-is replay's variability ({a['error_std']:.4g}) is not the record's "
