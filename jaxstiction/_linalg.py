@@ -63,6 +63,18 @@ def apply_qt(V, b):
     return jax.lax.fori_loop(0, V.shape[0], step, b)
 
 
+def apply_q(V, b):
+    """$Q b$ for the reflectors `V` of [`householder`][] (their reflections in
+    reverse order): the inverse of [`apply_qt`][]."""
+    n = V.shape[0]
+
+    def step(j, b):
+        v = V[n - 1 - j]
+        return b - 2.0 * v * (v @ b)
+
+    return jax.lax.fori_loop(0, n, step, b)
+
+
 def solve_upper(R, c):
     """Back substitution $R x = c$ for an upper-triangular `R`."""
     n = R.shape[0]

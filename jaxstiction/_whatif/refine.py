@@ -25,8 +25,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._filters import steady_state
-from .._linalg import apply_qt, householder, HouseholderQR, is_stable
+from .._filters import lagged, steady_state
+from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable
 from .._models import InitialState, LoopModel
 from .uncertainty import free_parameters, with_process
 
@@ -41,30 +41,14 @@ def ar_residual(v, weights, order: int = AR_ORDER):
     r"""The residual of $v_t$ regressed on a level and $v_{t-1}, \ldots, v_{t-order}$
     by least squares (Householder QR) over the samples whose `weights` are 1 and
     whose `order` predecessors are too; 0 elsewhere."""
-    n = v.shape[0]
-
-    def lag(x, k):
-        return jnp.concatenate([jnp.zeros((k,), x.dtype), x[: n - k]])
-
-    lags = [lag(v, k) for k in range(1, order + 1)]
-    w = weights
-    for k in range(1, order + 1):
-        w = w * lag(weights, k)
-    X = jnp.stack([jnp.ones_like(v)] + lags, axis=1) * w[:, None]
+    w = weights * jnp.prod(lagged(weights, order), axis=1)
+    X = jnp.concatenate([jnp.ones_like(v)[:, None], lagged(v, order)], axis=1) * w[:, None]
     V, _ = householder(X)
     z = apply_qt(V, v * w)
     # Q^T (w v) with its first `order + 1` entries removed is the residual in the
     # reflected basis; reflecting back gives it sample by sample
     z = z.at[: order + 1].set(0.0)
-    return _apply_q(V, z) * w
-
-
-def _apply_q(V, z):
-    """$Q z$ for the reflectors `V` of `householder` (the reflections in reverse)."""
-    k = V.shape[0]
-    for i in range(k - 1, -1, -1):
-        z = z - 2.0 * V[i] * (V[i] @ z)
-    return z
+    return apply_q(V, z) * w
 
 
 def _simulate(model: LoopModel, op, initial: InitialState):
@@ -107,9 +91,8 @@ def refine_process(model: LoopModel, op, pv, mask, initial: InitialState, *, ord
     new = at(sol.value)
     loss0 = jnp.sum(resid(z0, None) ** 2)
     loss = jnp.sum(resid(sol.value, None) ** 2)
-    a_new = new.process.polynomials()[1]
+    b_new, a_new = new.process.polynomials()
     keep = (jnp.isfinite(loss) & (loss < loss0) & jnp.all(jnp.isfinite(sol.value))
             & (is_stable(a_new) | ~is_stable(a0)) & is_stable(a_new, margin=-1e-3))
-    b_new = new.process.polynomials()[0]
     out = with_process(model, jnp.where(keep, b_new, b0), jnp.where(keep, a_new, a0))
     return out, keep, sol.result
