@@ -128,11 +128,16 @@ def fit(sim, real):
 
 def called(entry, calibration, threshold=0.5):
     """Whether `entry` is called sticky with `calibration`: the gate as the screen
-    applied it (hard gates and failed fits are never sticky), then the probability."""
+    applied it (hard gates and failed fits are never sticky), then the probability,
+    or under setpoint moves the model-based test (`jaxstiction.internal.decide`)."""
     if entry["status"] != "ok" or entry["gate"] in HARD:
         return False
     x = np.array([entry["features"][k] for k in FEATURES])
-    return float(calibration.probability(x)) >= threshold
+    s = js.VerdictSettings()
+    by_model = (entry["gate"] == "setpoint_moves" and bool(entry.get("model_wins"))
+                and (entry.get("fitness_kano") or -np.inf) >= s.setpoint_fitness
+                and (entry.get("band_fraction") or 0.0) >= s.setpoint_band)
+    return float(calibration.probability(x)) >= threshold or by_model
 
 
 def balanced(pairs):

@@ -162,6 +162,7 @@ from ._verdict.indicators import (
 )
 from ._verdict.probability import Calibration as Calibration, fit_calibration as fit_calibration
 from ._verdict.verdict import (
+    decide as decide,
     FEATURES as FEATURES,
     features as features,
     gate as gate,

@@ -167,6 +167,33 @@ def test_gate_names_each_reason(records):
     assert _gate_of(slow, -slow + np.random.default_rng(0).normal(0, 0.01, t.size)) == "few_periods"
 
 
+def test_setpoint_moves_leave_the_call_to_a_model_that_explains_them():
+    """Under setpoint moves a low probability is `inconclusive`, unless the model-based
+    test wins with a Kano model that simulates the held-out PV well and a band that
+    is a sizeable part of OP's travel; elsewhere the model-based test alone never
+    calls a loop sticky, and a hard gate stays inconclusive whatever it says."""
+    s = js.VerdictSettings()
+    sp, ok, frozen = (GATES.index(g) for g in ("setpoint_moves", "ok", "frozen_sensor"))
+
+    def call(code, p=0.1, wins=True, fitness=75.0, band=0.2, judged=True):
+        return internal.VERDICTS[int(internal.decide(jnp.asarray(judged), jnp.asarray(code), jnp.asarray(p),
+                                                     jnp.asarray(wins), jnp.asarray(fitness), jnp.asarray(band), s))]
+
+    assert call(sp) == "stiction"
+    assert call(sp, wins=False) == "inconclusive"
+    assert call(sp, fitness=s.setpoint_fitness - 1) == "inconclusive"
+    assert call(sp, fitness=jnp.nan) == "inconclusive"
+    assert call(sp, band=s.setpoint_band / 2) == "inconclusive"
+    assert call(sp, wins=False, p=0.9) == "stiction"
+    assert call(sp, judged=False) == "inconclusive"
+    assert call(ok) == "no_stiction" and call(ok, p=0.9) == "stiction"
+    assert call(frozen, p=0.9) == "inconclusive"
+    codes = jnp.asarray([sp, ok, sp, frozen])
+    fitness = jnp.asarray([75.0, 75, 10, 75])
+    batched = jax.vmap(lambda c, f: internal.decide(True, c, 0.1, True, f, 0.2, s))(codes, fitness)
+    assert [internal.VERDICTS[int(v)] for v in batched] == ["stiction", "no_stiction", "inconclusive", "inconclusive"]
+
+
 def test_a_stuck_valve_is_not_a_compressed_record():
     """PV flat over most of the record while OP travels is left to the evidence (a
     stuck valve); PV in many short flat runs is compression."""
@@ -249,6 +276,7 @@ def test_screen_says_inconclusive_with_the_reason(records):
         assert out[name]["stiction_detected"] is False
     e = out["setpoint"]
     assert e["gate"] == "setpoint_moves"
-    assert e["verdict"] == ("stiction" if e["stiction_probability"] >= 0.5 else "inconclusive")
+    by_model = e["model_wins"] and (e["fitness_kano"] or -1e9) >= 50 and e["band_fraction"] >= 0.10
+    assert e["verdict"] == ("stiction" if e["stiction_probability"] >= 0.5 or by_model else "inconclusive")
     for e in out.values():
         assert "\n" not in e.get("reason", "")

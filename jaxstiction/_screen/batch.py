@@ -123,6 +123,10 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
     which = VERDICTS[int(ver.verdict)]
     if not ok:
         reason = RESULTS[fit.result]
+    elif which == "stiction" and reason and float(ver.probability) < vset.threshold:
+        notes.append(f"called sticky by the model-based test although {reason}: the Kano model simulates the "
+                     f"held-out PV with a fitness of {float(fit.fitness_physical):.0f} % and beats the linear valve "
+                     f"(probability {float(ver.probability):.2f})")
     elif which == "stiction" and reason:
         notes.append(f"called sticky although {reason}")
     rec = {

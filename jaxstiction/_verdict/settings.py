@@ -48,6 +48,13 @@ class VerdictSettings(eqx.Module):
       dead sensor's, not a historian's); `max_setpoint_share`,
       the setpoint's variance over PV's; `min_periods`, the periods of the dominant
       oscillation the record must hold.
+    - under setpoint moves (the gate's `setpoint_moves`), the indicators look for a
+      cycle the setpoint's answers hide, so the model-based test also decides: a loop
+      is called sticky when `model_wins` holds, the Kano model simulates the held-out
+      PV with a fitness of at least `setpoint_fitness` (%: the model explains the
+      setpoint's answers, so the gain it measures is the valve's), and its band is
+      at least `setpoint_band` of the OP range (a band comparable to the travel the
+      setpoint moves make, not a small nonlinearity bending the fit).
     - `crossval_folds`, `crossval_horizon`: the blocked cross-validation's blocks
       and prediction horizon (samples).
     - `runaway_fitness`: a fitted model whose simulation fitness (34) on the record
@@ -74,6 +81,8 @@ class VerdictSettings(eqx.Module):
     max_flat_run: float = eqx.field(static=True, default=0.25)
     max_setpoint_share: float = eqx.field(static=True, default=0.5)
     min_periods: float = eqx.field(static=True, default=3.0)
+    setpoint_fitness: float = eqx.field(static=True, default=50.0)
+    setpoint_band: float = eqx.field(static=True, default=0.10)
     crossval_folds: int = eqx.field(static=True, default=4)
     crossval_horizon: int = eqx.field(static=True, default=5)
     runaway_fitness: float = eqx.field(static=True, default=-1e6)

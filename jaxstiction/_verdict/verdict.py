@@ -44,10 +44,14 @@ real records (`jaxstiction.internal.CALIBRATION`, from
 the historian compressed into flat runs is `inconclusive` whatever the evidence
 says. A record whose setpoint moves carry most of PV's variance, or with fewer
 than `min_periods` periods of any oscillation, is `inconclusive` unless the
-probability calls it sticky.
+probability calls it sticky. Under setpoint moves the indicators look for a cycle
+that the setpoint's answers hide, so there the model-based test may call it sticky
+as well: `model_wins`, with a Kano model that simulates the held-out PV well
+(`setpoint_fitness`) and a band of at least `setpoint_band` of the OP range.
 
 **Verdict.** `stiction` when the gate lets the loop through and the probability is
-at least `threshold`; `no_stiction` when it is below and nothing gates the loop;
+at least `threshold` (or, under setpoint moves, the model-based test above says
+so); `no_stiction` when it is below and nothing gates the loop;
 `inconclusive` otherwise. `stiction_detected` is `verdict == stiction`.
 
 **Slip and cause.** A sticky valve is one with a band S (deadband + stickband) and
@@ -180,6 +184,23 @@ def gate(g: GateMeasures, ind: Indicators, settings: VerdictSettings) -> Int[Arr
     return code
 
 
+def decide(judged, code, probability, model_wins, fitness, band, settings: VerdictSettings) -> Int[Array, ""]:
+    """The verdict (an index into `VERDICTS`) from the gate's `code`, the
+    `probability` and the model-based test (`model_wins`, with the Kano model's
+    held-out simulation `fitness` (%) and its `band` as a fraction of the OP range);
+    `judged`: the fit left models to judge. See the module notes."""
+    hard = jnp.zeros(jnp.shape(code), bool)
+    for name in HARD:
+        hard = hard | (code == GATES.index(name))
+    # under setpoint moves the model-based test decides too, where the Kano model
+    # explains the setpoint's answers and its band is a sizeable part of OP's travel
+    by_model = ((code == GATES.index("setpoint_moves")) & model_wins
+                & (fitness >= settings.setpoint_fitness) & (band >= settings.setpoint_band))
+    sticky = judged & ~hard & ((probability >= settings.threshold) | by_model)
+    conclusive = judged & ~hard & (sticky | (code == 0))
+    return jnp.where(sticky, 1, jnp.where(conclusive, 0, 2)).astype(jnp.int32)
+
+
 def residual_line(r, weights, min_period: float, max_fraction: float):
     """Share of the power of `r` (weighted samples only, mean removed) in its
     strongest narrow band of periods in [`min_period`, `max_fraction` × count], and
@@ -283,12 +304,8 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
     probability = calibration.probability(x)
     measures = gate_measures(op, pv, sp, loop.mask)
     code = gate(measures, ind, settings)
-    hard = jnp.zeros((), bool)
-    for name in HARD:
-        hard = hard | (code == GATES.index(name))
-    sticky = judged & ~hard & (probability >= settings.threshold)
-    conclusive = judged & ~hard & (sticky | (code == 0))
-    which = jnp.where(sticky, 1, jnp.where(conclusive, 0, 2)).astype(jnp.int32)
+    which = decide(judged, code, probability, model_wins, fit.fitness_physical, band, settings)
+    sticky = which == 1
     slips = jnp.maximum(slip, slip_est) > settings.min_slip_gain
     external = ok & (share > settings.oscillation)
     cause = jnp.where(sticky, 1, jnp.where(external, 2, 0))
