@@ -7,6 +7,7 @@ setpoint.
     python benchmarks/whatif.py --set concealed --seeds 0-23                    # the screen's fits
     python benchmarks/whatif.py --set fleet --seeds 0-49 --pad --no-oracle      # (b): ranking, 50 loops
     python benchmarks/whatif.py --set concealed --seeds 0-7 --design both       # grid against gradient
+    python benchmarks/whatif.py --set concealed --seeds 0-49 --no-oracle --no-polish   # the refit without the polish
     python benchmarks/whatif.py ... --json
 
 Two sets of loops:
@@ -312,6 +313,8 @@ def main():
                     help="WhatIfSettings.init_count (candidate initial valve states per direction)")
     ap.add_argument("--no-refine", action="store_true",
                     help="WhatIfSettings(refine=False): replay the fit's process as fitted, not refitted")
+    ap.add_argument("--no-polish", action="store_true",
+                    help="WhatIfSettings(polish=False): refit the process on the fitted valve only")
     ap.add_argument("--pad", action="store_true",
                     help="pad each loop to the screen's length bucket (masked), so loops of many lengths share a "
                          "few compiled programs (the fleet)")
@@ -325,7 +328,7 @@ def main():
         cases = [Fleet(s, lp) for s, lp in zip(args.seeds, realistic_fleet(args.seeds, "stiction"))]
     rows = []
     for c in cases:
-        wset = WhatIfSettings(init_count=args.init_count, refine=not args.no_refine)
+        wset = WhatIfSettings(init_count=args.init_count, refine=not args.no_refine, polish=not args.no_polish)
         r = one_loop(c, settings, wset, not args.no_oracle, designs, args.pad)
         rows.append(r)
         if not args.json:
@@ -342,7 +345,7 @@ def main():
                   + f"  ({r['seconds_fit']:.1f} + {r['seconds_whatif']:.2f} s)", flush=True)
     res = summary(rows, designs)
     res["set"], res["estimator"], res["seeds"] = args.set, args.estimator, seeds_text(args.seeds)
-    res["init_count"], res["refine"] = args.init_count, not args.no_refine
+    res["init_count"], res["refine"], res["polish"] = args.init_count, not args.no_refine, not args.no_polish
     if args.json:
         print(json.dumps({"summary": res, "loops": rows}))
     else:

@@ -184,12 +184,19 @@ from ._whatif.compensate import (
     grid_knockers as grid_knockers,
     smooth_objective as smooth_objective,
 )
-from ._whatif.refine import ar_residual as ar_residual, refine_process as refine_process
+from ._whatif.refine import (
+    ar_residual as ar_residual,
+    arx_criterion as arx_criterion,
+    polish_valve as polish_valve,
+    refine_process as refine_process,
+    refit_for_replay as refit_for_replay,
+)
 from ._whatif.replay import initial_and_sync as initial_and_sync, Replay as Replay, replay as replay
 from ._whatif.report import compensation_json as compensation_json, whatif_json as whatif_json
 from ._whatif.uncertainty import (
     draw_models as draw_models,
     process_factor as process_factor,
     with_process as with_process,
+    with_valve as with_valve,
 )
 from ._whatif.whatif import chi2_quantile as chi2_quantile, whatif_model as whatif_model

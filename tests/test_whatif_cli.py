@@ -164,8 +164,13 @@ def test_fit_whatif_json_contract(tmp_path):
     assert set(CONTRACT) <= set(w)
     assert w["controller"]["source"] == "identified from SP, OP and PV" and w["controller"]["fit"] > 0.95
     assert w["benefit"] == pytest.approx(w["error_std_as_is"] - w["error_std_repaired"], abs=2e-4)
-    lo, hi = w["error_std_repaired_interval"]
-    assert lo <= w["error_std_repaired"] <= hi
+    # the intervals are null, with the note saying why, when fewer than two drawn
+    # models fit the record (the polished valve sits at a sharp optimum of S)
+    if w["error_std_repaired_interval"] is None:
+        assert "no intervals" in w["note"]
+    else:
+        lo, hi = w["error_std_repaired_interval"]
+        assert lo <= w["error_std_repaired"] <= hi
     assert w["benefit"] > 0 and w["compensator"]["kind"] == "knocker"
     assert (tmp_path / "out" / "whatif.png").stat().st_size > 0
     # a given tuning replaces the identified one

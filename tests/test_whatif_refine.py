@@ -1,16 +1,29 @@
-"""The process refitted for the replay (`jaxstiction._whatif.refine`): its criterion
-against a plain least-squares reference, the refit recovering a plant's process from
-a wrong start, and vmap against single calls."""
+"""The model made ready for the replay (`jaxstiction._whatif.refine`): its two
+criteria against plain least-squares references, the valve polish and the process
+refit recovering a plant from wrong starts, the repaired replay that guards the
+choice, and vmap against single calls."""
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from test_whatif import _plant_loop
+import pytest
+from test_whatif import _plant_loop, KI, KP, reference_loop
 
-from jaxstiction._whatif.refine import _simulate as refine_simulate, SKIP
-from jaxstiction.internal import ar_residual, initial_and_sync, refine_process, with_process
+from jaxstiction import Controller
+from jaxstiction._whatif.refine import _repaired_error, _simulate as refine_simulate, _valve_path, SKIP
+from jaxstiction._whatif.replay import setpoints
+from jaxstiction.internal import (
+    ar_residual,
+    arx_criterion,
+    initial_and_sync,
+    polish_valve,
+    refine_process,
+    refit_for_replay,
+    with_process,
+    with_valve,
+)
 
 
 def _reference_residual(v, weights, order):
@@ -37,6 +50,90 @@ def test_ar_residual_matches_a_plain_least_squares():
     np.testing.assert_allclose(got, _reference_residual(v, weights, 4), atol=1e-9)
 
 
+def test_arx_criterion_matches_a_plain_least_squares():
+    rng = np.random.default_rng(1)
+    n, order = 300, 3
+    x = np.cumsum(rng.standard_normal(n))
+    pv = np.convolve(x, [0.0, 0.5, 0.3])[:n] + rng.standard_normal(n)
+    weights = np.ones(n)
+    weights[:10] = 0.0
+    weights[-20:] = 0.0
+    rows = [t for t in range(order, n) if all(weights[t - k] > 0 for k in range(order + 1))]
+    X = np.array([[1.0] + [pv[t - k] for k in range(1, order + 1)] + [x[t - k] for k in range(1, order + 1)]
+                  for t in rows])
+    coef, *_ = np.linalg.lstsq(X, pv[rows], rcond=None)
+    want = np.sum((pv[rows] - X @ coef) ** 2)
+    got = float(arx_criterion(jnp.asarray(x), jnp.asarray(pv), jnp.asarray(weights), order))
+    assert got == pytest.approx(want, rel=1e-9)
+
+
+def _prepared(model, loop):
+    op, pv = jnp.asarray(loop.op), jnp.asarray(loop.pv)
+    w = (jnp.asarray(loop.mask) > 0).astype(op.dtype)
+    initial, _ = initial_and_sync(model, op, pv, w, 8)
+    return op, pv, w, initial
+
+
+def test_polish_finds_the_band_a_fit_missed_by_a_tenth():
+    """A valve whose S is a tenth low and J half a percent off slips samples early;
+    the polish finds S to its grid step and never raises its criterion."""
+    plant, loop, _, _ = _plant_loop(3, S=4.0, J=1.5)
+    off = with_valve(plant, jnp.asarray(3.88), jnp.asarray(2.0))
+    op, pv, w, initial = _prepared(off, loop)
+    polished = polish_valve(off, op, pv, w, initial)
+    assert float(polished.chain[0].S) == pytest.approx(4.0, abs=0.021)
+    assert abs(float(polished.chain[0].J) - 1.5) < abs(2.0 - 1.5)
+    ws = w * (jnp.arange(op.shape[0]) >= SKIP)
+
+    def crit(m):
+        return float(arx_criterion(_valve_path(m, op, initial), pv, ws))
+
+    assert crit(polished) <= crit(off)
+
+
+PI = Controller(kp=jnp.asarray(KP), ki=jnp.asarray(KI))
+
+
+def _ready(model, loop, ctrl, polish=True):
+    op, pv, w, _ = _prepared(model, loop)
+    sp_sim, sp_stat, _ = setpoints(loop, ctrl)
+    return refit_for_replay(model, op, pv, w, ctrl, sp_sim, sp_stat, 8, polish=polish)
+
+
+def test_repaired_error_is_the_linear_plant_s():
+    """The cheap repaired replay of the plant's own model is the plant run with a
+    linear valve under the same noise and setpoint; under a PI ten times too tight
+    it runs away."""
+    plant, loop, sp, v = _plant_loop(3, S=4.0, J=1.5)
+    op, pv, w, initial = _prepared(plant, loop)
+    sp_sim, sp_stat, _ = setpoints(loop, PI)
+    ws = w * (jnp.arange(op.shape[0]) >= SKIP)
+    got = float(_repaired_error(plant, op, pv, ws, sp_sim, sp_stat, PI, initial))
+    _, _, _, pv_lin = reference_loop(0.0, 0.0, KP, KI, sp, v)
+    want = float(np.std((sp - pv_lin)[SKIP:]))
+    assert got == pytest.approx(want, rel=0.05)
+    tight = Controller(kp=jnp.asarray(10 * KP), ki=jnp.asarray(10 * KI))
+    assert not float(_repaired_error(plant, op, pv, ws, sp_sim, sp_stat, tight, initial)) < 10 * want
+
+
+def test_refit_for_replay_undoes_a_dead_time_traded_for_a_low_band():
+    """A fit that took a dead time of 2 for 1 with S a tenth low: the valve polish
+    and the dead-time choice give the plant's dead time back; without the polish the
+    dead time stays."""
+    plant, loop, _, _ = _plant_loop(3, S=4.0, J=1.5)
+    b, a = (jnp.concatenate([p, jnp.zeros(2)]) for p in plant.process.polynomials())
+    traded = with_valve(with_process(plant, jnp.roll(b, 1), a), jnp.asarray(3.88), jnp.asarray(1.5))
+    op, pv, w, _ = _prepared(traded, loop)
+    ready = _ready(traded, loop, PI)
+    b_ready = np.asarray(ready.process.polynomials()[0])
+    assert b_ready[0] == 0 and abs(b_ready[1]) > 0.5
+    # every S whose slips fall on the same samples ties; on 500 samples that spans
+    # a few hundredths here
+    assert float(ready.chain[0].S) == pytest.approx(4.0, abs=0.06)
+    plain = _ready(traded, loop, PI, polish=False)
+    assert float(plain.chain[0].S) == pytest.approx(3.88) and np.asarray(plain.process.polynomials()[0])[1] == 0
+
+
 def _wrong(plant):
     """The plant with the kind of process a light fit finds on a tight loop: the
     resonance of A lost (a = [1, -0.8, 0.1] for [1, -1.5, 0.7]), B rescaled."""
@@ -48,7 +145,7 @@ def _refit(model, loop):
     op, pv = jnp.asarray(loop.op), jnp.asarray(loop.pv)
     w = (jnp.asarray(loop.mask) > 0).astype(op.dtype)
     initial, _ = initial_and_sync(model, op, pv, w, 8)
-    return refine_process(model, op, pv, w, initial)
+    return refine_process(model, op, pv, w, initial)[:3]
 
 
 def _criterion(model, loop, initial_from):

@@ -16,57 +16,146 @@ residual on its own past, by Householder QR), with optimistix's Levenberg–Marq
 The refit is kept when it lowers that criterion and leaves a stable process stable;
 otherwise the fit's process stays.
 
+Before the refit the valve may be polished (`polish_valve`). On a slowly ramping OP
+the sample at which the valve slips hangs on S's second decimal, and a fit whose S
+is a tenth low slips a sample early and takes a dead time one sample too long to
+match. S and J are searched on a fine grid around the fit, one coordinate at a time,
+by the residual of a high-order ARX model of PV on its own past and the valve path
+(no process model is assumed), and the process is then refitted at the fitted dead
+time and one sample either side (`refit_for_replay`). Of these refits and the one
+without the polish, the least criterion is kept, among those whose repaired replay
+(a cheap one, from the refit's own start, with the loop's PI) keeps its error within
+`RUNAWAY_FACTOR` of the record's. A polished valve
+without a slip can buy its fit with a process the repaired loop cannot carry (on the
+plant record L47, a gain 2.6 times the fit's, and a repaired replay that bangs OP
+between its limits).
+
 Measured on `benchmarks/whatif.py` (docs/method/whatif.md).
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 from .._filters import lagged, steady_state
 from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable
+from .._misc import first_min
 from .._models import InitialState, LoopModel
-from .uncertainty import free_parameters, with_process
+from .closedloop import closed_loop
+from .controller import Controller
+from .replay import initial_and_sync
+from .uncertainty import free_parameters, with_process, with_valve
 
 
 # AR order of the refit's noise model, and samples skipped at the start (the
 # process's transient from its assumed rest)
 AR_ORDER = 10
 SKIP = 50
+# the valve polish: S within +-S_SPAN of the fit by S_STEP, J within +-J_SPAN by
+# J_STEP (% of OP span), ROUNDS rounds of S then J
+S_STEP, S_SPAN = 0.01, 0.4
+J_STEP, J_SPAN = 0.05, 2.0
+ROUNDS = 2
+
+
+def _projected_out(X, y, weights, order: int):
+    """The least-squares residual of `y` on the columns of `X` (Householder QR) over
+    the samples whose `weights` are 1 and whose `order` predecessors are too; 0
+    elsewhere."""
+    w = weights * jnp.prod(lagged(weights, order), axis=1)
+    X = X * w[:, None]
+    V, _ = householder(X)
+    z = apply_qt(V, y * w)
+    # Q^T (w y) with its first entries removed is the residual in the reflected
+    # basis; reflecting back gives it sample by sample
+    z = z.at[: X.shape[1]].set(0.0)
+    return apply_q(V, z) * w
 
 
 def ar_residual(v, weights, order: int = AR_ORDER):
     r"""The residual of $v_t$ regressed on a level and $v_{t-1}, \ldots, v_{t-order}$
     by least squares (Householder QR) over the samples whose `weights` are 1 and
     whose `order` predecessors are too; 0 elsewhere."""
-    w = weights * jnp.prod(lagged(weights, order), axis=1)
-    X = jnp.concatenate([jnp.ones_like(v)[:, None], lagged(v, order)], axis=1) * w[:, None]
-    V, _ = householder(X)
-    z = apply_qt(V, v * w)
-    # Q^T (w v) with its first `order + 1` entries removed is the residual in the
-    # reflected basis; reflecting back gives it sample by sample
-    z = z.at[: order + 1].set(0.0)
-    return apply_q(V, z) * w
+    X = jnp.concatenate([jnp.ones_like(v)[:, None], lagged(v, order)], axis=1)
+    return _projected_out(X, v, weights, order)
+
+
+def arx_criterion(x, pv, weights, order: int = AR_ORDER):
+    r"""The residual sum of squares of $PV_t$ regressed on a level, $PV_{t-1}, \ldots,
+    PV_{t-order}$ and $x_{t-1}, \ldots, x_{t-order}$ (the valve path), over the
+    samples `ar_residual` uses."""
+    X = jnp.concatenate([jnp.ones_like(pv)[:, None], lagged(pv, order), lagged(x, order)], axis=1)
+    return jnp.sum(_projected_out(X, pv, weights, order) ** 2)
+
+
+def _valve_path(model: LoopModel, op, initial: InitialState):
+    """The chain's output from `initial`, held while a stuck valve rests (as
+    `LoopModel.simulate` holds it)."""
+    x = model.valve(op, initial.chain)
+    pre = jnp.cumprod(x == x[0]).astype(bool) & initial.held
+    return jnp.where(pre, initial.hold, x)
+
+
+def polish_valve(model: LoopModel, op, pv, mask, initial: InitialState, *, order: int = AR_ORDER) -> LoopModel:
+    """`model` with its Kano valve's S and J searched on a fine grid around the fit
+    (see the module notes), by `arx_criterion` on the valve path from `initial`.
+    The fit's own point is on the grid, so the criterion never rises. Pure and
+    vmappable."""
+    dtype = op.dtype
+    w = (mask > 0).astype(dtype) * (jnp.arange(op.shape[0]) >= SKIP)
+    kano = model.chain[0]
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+
+    def crit(S, J):
+        c = arx_criterion(_valve_path(with_valve(model, S, J), op, initial), pv, w, order)
+        return jnp.where((S > 0) & jnp.isfinite(c), c, big)
+
+    crits = jax.vmap(crit)
+    # the fit's own value first, so that a tie keeps it
+    ds = jnp.concatenate([jnp.zeros((1,), dtype), S_STEP * jnp.arange(-round(S_SPAN / S_STEP),
+                                                                      round(S_SPAN / S_STEP) + 1, dtype=dtype)])
+    dj = jnp.concatenate([jnp.zeros((1,), dtype), J_STEP * jnp.arange(-round(J_SPAN / J_STEP),
+                                                                      round(J_SPAN / J_STEP) + 1, dtype=dtype)])
+    S, J = jnp.asarray(kano.S, dtype), jnp.asarray(kano.J, dtype)
+    for _ in range(ROUNDS):
+        Ss = S + ds
+        S = Ss[first_min(crits(Ss, jnp.minimum(J, Ss)))]
+        J = jnp.minimum(J, S)
+        Js = jnp.clip(J + dj, 0.0, S)
+        J = Js[first_min(crits(jnp.full_like(Js, S), Js))]
+    return with_valve(model, S, J)
+
+
+def _shifted(model: LoopModel, k: int):
+    """`(model, valid)`: the process with its dead time changed by `k` samples (its
+    B moved along; valid while B stays strictly proper and inside its array)."""
+    b, a = model.process.polynomials()
+    nz = b != 0
+    if k < 0:
+        valid = ~jnp.any(nz[: 1 - k])
+    elif k > 0:
+        valid = ~jnp.any(nz[b.shape[0] - k:])
+    else:
+        valid = jnp.asarray(True)
+    return with_process(model, jnp.roll(b, k), a), valid
 
 
 def _simulate(model: LoopModel, op, initial: InitialState):
     """`model.simulate` from `initial`, its process filter restarted at rest for the
     first valve position (the refit changes the process, so the fit's filter state
     no longer applies)."""
-    b, a = model.process.polynomials()
-    x0 = model.valve(op[:1], initial.chain)[0]
-    x0 = jnp.where(initial.held, initial.hold, x0)
-    start = eqx.tree_at(lambda i: i.filter, initial, steady_state(b, a, x0 - model.op_offset))
-    return model.simulate(op, start)
+    return model.simulate(op, _start(model, op, initial))
 
 
 def refine_process(model: LoopModel, op, pv, mask, initial: InitialState, *, order: int = AR_ORDER,
                    max_steps: int = 40):
-    """`(model, refined, result)`: `model` with its process refitted (see the module
-    notes), whether the refit was kept, and the solver's result code. Pure and
-    vmappable; a refit that fails leaves `model` as it was."""
+    """`(model, refined, result, loss)`: `model` with its process refitted (see the
+    module notes), whether the refit was kept, the solver's result code and the
+    criterion of the model returned. Pure and vmappable; a refit that fails leaves
+    `model` as it was."""
     dtype = op.dtype
     b0, a0 = model.process.polynomials()
     nb = b0.shape[0]
@@ -95,4 +184,72 @@ def refine_process(model: LoopModel, op, pv, mask, initial: InitialState, *, ord
     keep = (jnp.isfinite(loss) & (loss < loss0) & jnp.all(jnp.isfinite(sol.value))
             & (is_stable(a_new) | ~is_stable(a0)) & is_stable(a_new, margin=-1e-3))
     out = with_process(model, jnp.where(keep, b_new, b0), jnp.where(keep, a_new, a0))
-    return out, keep, sol.result
+    return out, keep, sol.result, jnp.where(keep, loss, loss0)
+
+
+# a candidate whose repaired replay's error exceeds the record's by this factor has
+# run away (an OP that bangs between its limits), and is not kept
+RUNAWAY_FACTOR = 3.0
+
+
+def _start(model: LoopModel, op, initial: InitialState) -> InitialState:
+    """`initial` with the process filter at rest for the first valve position (as
+    `_simulate` restarts it)."""
+    b, a = model.process.polynomials()
+    x0 = model.valve(op[:1], initial.chain)[0]
+    x0 = jnp.where(initial.held, initial.hold, x0)
+    return eqx.tree_at(lambda i: i.filter, initial, steady_state(b, a, x0 - model.op_offset))
+
+
+def _repaired_error(model: LoopModel, op, pv, weights, sp_sim, sp_stat, controller: Controller,
+                    initial: InitialState):
+    """The standard deviation of SP − PV over `weights` in the loop repaired (a linear
+    valve) under `controller`, driven by `model`'s disturbance on the record: a
+    cheap replay from `initial`, to catch a model whose repaired loop runs away."""
+    dtype = op.dtype
+    sp_sim, sp_stat = jnp.asarray(sp_sim, dtype), jnp.asarray(sp_stat, dtype)
+    start = _start(model, op, initial)
+    v = jnp.where(weights > 0, pv - model.simulate(op, start), 0.0)
+    run = closed_loop(with_valve(model, jnp.zeros((), dtype), jnp.zeros((), dtype)), controller, sp_sim, v, start,
+                      op[0])
+    count = jnp.maximum(jnp.sum(weights), 1.0)
+    e = sp_stat - run.pv
+    m = jnp.sum(weights * e) / count
+    return jnp.sqrt(jnp.sum(weights * (e - m) ** 2) / count)
+
+
+def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_sim, sp_stat, init_count: int, *,
+                     polish: bool = True) -> LoopModel:
+    """`model` made ready for the replay (see the module notes): its process refitted
+    on the fit's valve path and, with `polish`, also on the polished valve's path at
+    the fitted dead time and one sample either side. With `polish`, the least
+    criterion is kept (the earlier candidate on a tie) among the refits whose loop
+    repaired under `controller` (setpoint `sp_sim`, error read against `sp_stat`: see
+    `setpoints`) does not run away; without it, the one refit is. Pure and
+    vmappable."""
+    initial, _ = initial_and_sync(model, op, pv, mask, init_count)
+    plain, _, _, loss = refine_process(model, op, pv, mask, initial)
+    if not polish:  # one candidate: nothing to choose between
+        return plain
+    candidates = [(plain, loss, jnp.asarray(True), initial)]
+    polished = polish_valve(model, op, pv, mask, initial)
+    start, _ = initial_and_sync(polished, op, pv, mask, init_count)
+    shifted = [_shifted(polished, k) for k in (0, -1, 1)]
+    models = jax.tree.map(lambda *t: jnp.stack(t), *[m for m, _ in shifted])
+    outs, _, _, losses = jax.vmap(lambda m: refine_process(m, op, pv, mask, start))(models)
+    candidates += [(jax.tree.map(lambda t, i=i: t[i], outs), losses[i], valid, start)
+                   for i, (_, valid) in enumerate(shifted)]
+    w = (mask > 0).astype(op.dtype) * (jnp.arange(op.shape[0]) >= SKIP)
+    count = jnp.maximum(jnp.sum(w), 1.0)
+    e = sp_stat - pv
+    recorded = jnp.sqrt(jnp.sum(w * (e - jnp.sum(w * e) / count) ** 2) / count)
+    ok = [v & jnp.isfinite(l)
+          & ~(_repaired_error(m, op, pv, w, sp_sim, sp_stat, controller, i0) > RUNAWAY_FACTOR * recorded)
+          for m, l, v, i0 in candidates]
+    losses = jnp.stack([jnp.where(o, c[1], jnp.inf) for c, o in zip(candidates, ok)])
+    best = first_min(losses)
+    stacked = jax.tree.map(lambda *t: jnp.stack(t), *[c[0] for c in candidates])
+    chosen = jax.tree.map(lambda t: t[best], stacked)
+    # no candidate qualifies: the fit as it is
+    fitted = with_process(model, *model.process.polynomials())
+    return jax.tree.map(lambda c, m: jnp.where(jnp.any(jnp.isfinite(losses)), c, m), chosen, fitted)

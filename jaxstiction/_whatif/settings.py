@@ -108,6 +108,11 @@ class WhatIfSettings(eqx.Module):
       tenth-order AR noise model, on the fitted valve path (kept when it lowers that
       criterion and leaves a stable process stable).
       `whatif_model` replays the model it is given as it is.
+    - `polish`: with `refine`, also polish S and J on a fine grid around the fit by a
+      high-order ARX criterion, and refit the process on the polished valve's path at
+      the fitted dead time and one sample either side; the least criterion is kept
+      among the refits whose repaired replay does not run away. It costs about 2 s a loop on a 2-core CPU,
+      against 0.4 s without it.
     """
 
     draws: int = eqx.field(static=True, default=24)
@@ -119,6 +124,7 @@ class WhatIfSettings(eqx.Module):
     compensate: CompensateSettings = CompensateSettings()
     seed: int = eqx.field(static=True, default=0)
     refine: bool = eqx.field(static=True, default=True)
+    polish: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         check_counts(self, positive=("init_count",), nonnegative=("draws", "seed", "min_samples"))

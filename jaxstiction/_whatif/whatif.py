@@ -33,8 +33,8 @@ from .._models import LoopModel
 from .closedloop import closed_loop, ClosedLoopRun, Knocker, loop_stats, LoopStats, settling_time
 from .compensate import Compensation, design_knocker, METHODS
 from .controller import Controller, identify_controller
-from .refine import refine_process
-from .replay import initial_and_sync, Replay, replay, setpoints
+from .refine import refit_for_replay
+from .replay import Replay, replay, setpoints
 from .settings import CompensateSettings, WhatIfSettings
 from .uncertainty import draw_models, free_parameters, with_valve
 
@@ -215,18 +215,31 @@ def _whatif(fit: LoopFit, loop: Loop, settings: WhatIfSettings = WhatIfSettings(
     is not one unbatched `Loop`.
     """
     _check(fit, loop)
-    model = _refined(fit.physical, loop, settings.init_count) if settings.refine else fit.physical
-    return _whatif_model(model, loop, fit.S_interval, fit.J_interval, settings, controller=controller)
+    controller = _controller(loop, controller)
+    if not settings.refine:
+        return _whatif_model(fit.physical, loop, fit.S_interval, fit.J_interval, settings, controller=controller)
+    model = _refined(fit.physical, loop, controller, settings.init_count, settings.polish)
+    # the intervals of S and J move with the polished valve
+    dS, dJ = model.chain[0].S - fit.physical.chain[0].S, model.chain[0].J - fit.physical.chain[0].J
+    return _whatif_model(model, loop, fit.S_interval + dS, fit.J_interval + dJ, settings, controller=controller)
 
 
-def _refined(model: LoopModel, loop: Loop, init_count: int) -> LoopModel:
-    """`model` with its process refitted for the replay (`refine_process`) on the
-    valve path from its best initial state on the record."""
+def _controller(loop: Loop, controller: Controller | None) -> Controller:
+    """The given controller, else the one identified from the record."""
+    if controller is not None:
+        return controller
+    dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
+    mask = (jnp.asarray(loop.mask) > 0).astype(dtype)
+    return identify_controller(jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype), loop.setpoint, mask)
+
+
+def _refined(model: LoopModel, loop: Loop, controller: Controller, init_count: int, polish: bool) -> LoopModel:
+    """`model` made ready for the replay (`refit_for_replay`)."""
     dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
     op, pv = jnp.asarray(loop.op, dtype), jnp.asarray(loop.pv, dtype)
     w = (jnp.asarray(loop.mask) > 0).astype(dtype)
-    initial, _ = initial_and_sync(model, op, pv, w, init_count)
-    return refine_process(model, op, pv, w, initial)[0]
+    sp_sim, sp_stat, _ = setpoints(loop, controller)
+    return refit_for_replay(model, op, pv, w, controller, sp_sim, sp_stat, init_count, polish=polish)
 
 
 def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings: WhatIfSettings = WhatIfSettings(),
@@ -332,7 +345,8 @@ def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = Compens
     **Raises:** `ValueError` as [`jaxstiction.whatif`][].
     """
     _check(fit, loop)
-    model = _refined(fit.physical, loop, init_count) if refine else fit.physical
+    controller = _controller(loop, controller)
+    model = _refined(fit.physical, loop, controller, init_count, refine) if refine else fit.physical
     p = _prepare(model, loop, controller, init_count, reversal_threshold, min_samples)
     d = design_knocker(p.model, p.controller, p.replay, p.window, p.ts, p.as_is_stats, settings, reversal_threshold)
     a, r, c = p.as_is_stats, p.repaired_stats, d.compensated
