@@ -212,10 +212,14 @@ def _repaired_error(model: LoopModel, op, pv, weights, sp_sim, sp_stat, controll
     v = jnp.where(weights > 0, pv - model.simulate(op, start), 0.0)
     run = closed_loop(with_valve(model, jnp.zeros((), dtype), jnp.zeros((), dtype)), controller, sp_sim, v, start,
                       op[0])
+    return _error_std(run.pv, sp_stat, weights)
+
+
+def _error_std(pv, sp, weights):
+    """The standard deviation of `sp − pv` over `weights`."""
     count = jnp.maximum(jnp.sum(weights), 1.0)
-    e = sp_stat - run.pv
-    m = jnp.sum(weights * e) / count
-    return jnp.sqrt(jnp.sum(weights * (e - m) ** 2) / count)
+    e = sp - pv
+    return jnp.sqrt(jnp.sum(weights * (e - jnp.sum(weights * e) / count) ** 2) / count)
 
 
 def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_sim, sp_stat, init_count: int, *,
@@ -240,9 +244,7 @@ def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_
     candidates += [(jax.tree.map(lambda t, i=i: t[i], outs), losses[i], valid, start)
                    for i, (_, valid) in enumerate(shifted)]
     w = (mask > 0).astype(op.dtype) * (jnp.arange(op.shape[0]) >= SKIP)
-    count = jnp.maximum(jnp.sum(w), 1.0)
-    e = sp_stat - pv
-    recorded = jnp.sqrt(jnp.sum(w * (e - jnp.sum(w * e) / count) ** 2) / count)
+    recorded = _error_std(pv, sp_stat, w)
     ok = [v & jnp.isfinite(l)
           & ~(_repaired_error(m, op, pv, w, sp_sim, sp_stat, controller, i0) > RUNAWAY_FACTOR * recorded)
           for m, l, v, i0 in candidates]
