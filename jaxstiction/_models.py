@@ -183,15 +183,20 @@ class LoopModel(eqx.Module):
 
     # ---------------------------------------------------------------- simulate
 
+    def valve_path(self, op: Float[Array, " time"], initial: InitialState) -> Float[Array, " time"]:
+        """Process input before the offset from `initial`: the chain's output, held at
+        `initial.hold` (when `initial.held`) until it first changes."""
+        x = self.valve(op, initial.chain)
+        pre = jnp.cumprod(x == x[0]).astype(bool) & initial.held
+        return jnp.where(pre, initial.hold, x)
+
     def simulate(self, op: Float[Array, " time"], initial: InitialState | None = None) -> Float[Array, " time"]:
         """Simulated PV for OP `op` (noise-free), from `initial` (default: at rest;
         see [`jaxstiction.LoopModel.initial_state`][] to estimate it from data)."""
         op = _f(op)
         if initial is None:
             initial = self.rest_state(op)
-        x = self.valve(op, initial.chain)
-        pre = jnp.cumprod(x == x[0]).astype(bool) & initial.held
-        x = jnp.where(pre, initial.hold, x)
+        x = self.valve_path(op, initial)
         b, a = self.process.polynomials()
         y = lfilter(b, a, x - self.op_offset, initial.filter) + self.pv_offset
         return self._output(y, initial.output)

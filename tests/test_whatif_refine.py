@@ -12,7 +12,7 @@ import pytest
 from test_whatif import _plant_loop, KI, KP, reference_loop
 
 from jaxstiction import Controller
-from jaxstiction._whatif.refine import _repaired_error, _simulate as refine_simulate, _valve_path, SKIP
+from jaxstiction._whatif.refine import _repaired_error, _simulate as refine_simulate, SKIP
 from jaxstiction._whatif.replay import setpoints
 from jaxstiction.internal import (
     ar_residual,
@@ -86,7 +86,7 @@ def test_polish_finds_the_band_a_fit_missed_by_a_tenth():
     ws = w * (jnp.arange(op.shape[0]) >= SKIP)
 
     def crit(m):
-        return float(arx_criterion(_valve_path(m, op, initial), pv, ws))
+        return float(arx_criterion(m.valve_path(op, initial), pv, ws))
 
     assert crit(polished) <= crit(off)
 

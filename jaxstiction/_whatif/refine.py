@@ -91,14 +91,6 @@ def arx_criterion(x, pv, weights, order: int = AR_ORDER):
     return jnp.sum(_projected_out(X, pv, weights, order) ** 2)
 
 
-def _valve_path(model: LoopModel, op, initial: InitialState):
-    """The chain's output from `initial`, held while a stuck valve rests (as
-    `LoopModel.simulate` holds it)."""
-    x = model.valve(op, initial.chain)
-    pre = jnp.cumprod(x == x[0]).astype(bool) & initial.held
-    return jnp.where(pre, initial.hold, x)
-
-
 def polish_valve(model: LoopModel, op, pv, mask, initial: InitialState, *, order: int = AR_ORDER) -> LoopModel:
     """`model` with its Kano valve's S and J searched on a fine grid around the fit
     (see the module notes), by `arx_criterion` on the valve path from `initial`.
@@ -110,7 +102,7 @@ def polish_valve(model: LoopModel, op, pv, mask, initial: InitialState, *, order
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
 
     def crit(S, J):
-        c = arx_criterion(_valve_path(with_valve(model, S, J), op, initial), pv, w, order)
+        c = arx_criterion(with_valve(model, S, J).valve_path(op, initial), pv, w, order)
         return jnp.where((S > 0) & jnp.isfinite(c), c, big)
 
     crits = jax.vmap(crit)
@@ -196,8 +188,7 @@ def _start(model: LoopModel, op, initial: InitialState) -> InitialState:
     """`initial` with the process filter at rest for the first valve position (as
     `_simulate` restarts it)."""
     b, a = model.process.polynomials()
-    x0 = model.valve(op[:1], initial.chain)[0]
-    x0 = jnp.where(initial.held, initial.hold, x0)
+    x0 = model.valve_path(op[:1], initial)[0]
     return eqx.tree_at(lambda i: i.filter, initial, steady_state(b, a, x0 - model.op_offset))
 
 
