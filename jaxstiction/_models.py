@@ -196,7 +196,13 @@ class LoopModel(eqx.Module):
         op = _f(op)
         if initial is None:
             initial = self.rest_state(op)
-        x = self.valve_path(op, initial)
+        return self.process_output(self.valve_path(op, initial), initial)
+
+    def process_output(self, x: Float[Array, " time"], initial: InitialState) -> Float[Array, " time"]:
+        """Simulated PV for the process input `x` (from
+        [`jaxstiction.LoopModel.valve_path`][]), from `initial`'s process and output
+        states: the part of `simulate` after the chain, for a caller that changes the
+        process and keeps the valve."""
         b, a = self.process.polynomials()
         y = lfilter(b, a, x - self.op_offset, initial.filter) + self.pv_offset
         return self._output(y, initial.output)

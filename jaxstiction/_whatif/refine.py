@@ -13,7 +13,9 @@ Here the free coefficients of $B$ and $A$ are refitted on the fitted valve path 
 prediction error of an AR(`order`) noise model with a level, the AR coefficients
 projected out at every step (variable projection: the residual is $v$'s least-squares
 residual on its own past, by Householder QR), with optimistix's Levenberg–Marquardt.
-The refit is kept when it lowers that criterion and leaves a stable process stable;
+The residual's Jacobian is Golub and Pereyra's closed form (`_ar_residual_jvp`): the
+valve path is computed once, and no derivative flows through the QR factorisation,
+which would cost several times more. The refit is kept when it lowers that criterion and leaves a stable process stable;
 otherwise the fit's process stays.
 
 Before the refit the valve may be polished (`polish_valve`). On a slowly ramping OP
@@ -21,7 +23,8 @@ the sample at which the valve slips hangs on S's second decimal, and a fit whose
 is a tenth low slips a sample early and takes a dead time one sample too long to
 match. S and J are searched on a fine grid around the fit, one coordinate at a time,
 by the residual of a high-order ARX model of PV on its own past and the valve path
-(no process model is assumed), and the process is then refitted at the fitted dead
+(no process model is assumed; PV's own regressors are factored once for the whole
+grid, `arx_criteria`), and the process is then refitted at the fitted dead
 time and one sample either side (`refit_for_replay`). Of these refits and the one
 without the polish, the least criterion is kept, among those whose repaired replay
 (a cheap one, from the refit's own start, with the loop's PI) keeps its error within
@@ -35,13 +38,15 @@ Measured on `benchmarks/whatif.py` (docs/method/whatif.md).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 from .._filters import lagged, steady_state
-from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable
+from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable, solve_upper
 from .._misc import first_min
 from .._models import InitialState, LoopModel
 from .closedloop import closed_loop
@@ -65,7 +70,7 @@ def _projected_out(X, y, weights, order: int):
     """The least-squares residual of `y` on the columns of `X` (Householder QR) over
     the samples whose `weights` are 1 and whose `order` predecessors are too; 0
     elsewhere."""
-    w = weights * jnp.prod(lagged(weights, order), axis=1)
+    w = _ar_weights(weights, order)
     X = X * w[:, None]
     V, _ = householder(X)
     z = apply_qt(V, y * w)
@@ -78,17 +83,87 @@ def _projected_out(X, y, weights, order: int):
 def ar_residual(v, weights, order: int = AR_ORDER):
     r"""The residual of $v_t$ regressed on a level and $v_{t-1}, \ldots, v_{t-order}$
     by least squares (Householder QR) over the samples whose `weights` are 1 and
-    whose `order` predecessors are too; 0 elsewhere."""
-    X = jnp.concatenate([jnp.ones_like(v)[:, None], lagged(v, order)], axis=1)
-    return _projected_out(X, v, weights, order)
+    whose `order` predecessors are too; 0 elsewhere.
+
+    Differentiable in `v` by a closed-form derivative (`_ar_residual_jvp`), not
+    through the QR factorisation: Levenberg–Marquardt on it costs several times
+    less."""
+    return _ar_residual(order, v, weights)
+
+
+def _ar_regressors(v, order: int):
+    return jnp.concatenate([jnp.ones_like(v)[:, None], lagged(v, order)], axis=1)
+
+
+def _ar_weights(weights, order: int):
+    return weights * jnp.prod(lagged(weights, order), axis=1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _ar_residual(order: int, v, weights):
+    return _projected_out(_ar_regressors(v, order), v, weights, order)
+
+
+def _guarded(R):
+    """`R` with each row and column of a negligible pivot (a regressor with nothing
+    left to fit) replaced by the identity's, and which pivots those are."""
+    diag = jnp.abs(jnp.diag(R))
+    full = diag > 1e-12 * jnp.maximum(jnp.max(diag), jnp.finfo(R.dtype).tiny)
+    keep = full[:, None] & full[None, :]
+    return jnp.where(keep, R, jnp.eye(R.shape[0], dtype=R.dtype)), full
+
+
+@_ar_residual.defjvp
+def _ar_residual_jvp(order, primals, tangents):
+    r"""The derivative of the projected residual $r = \Pi^\perp W v$ with regressors
+    $X = W[1, v_{t-1}, \ldots]$ that depend on $v$ too (Golub and Pereyra 1973):
+    $\partial r = \Pi^\perp (W\partial v - \partial X\,\hat\beta)
+    - Q_1 R^{-T} \partial X^T r$, with $X = Q_1 R$ and $\hat\beta = R^{-1} Q_1^T W v$."""
+    v, weights = primals
+    dv, _ = tangents
+    w = _ar_weights(weights, order)
+    V, R = householder(_ar_regressors(v, order) * w[:, None])
+    n = R.shape[0]
+    z = apply_qt(V, v * w)
+    Rg, full = _guarded(R)
+    beta = solve_upper(Rg, jnp.where(full, z[:n], 0.0))
+    r = apply_q(V, z.at[:n].set(0.0)) * w
+    dX = jnp.concatenate([jnp.zeros_like(dv)[:, None], lagged(dv, order)], axis=1) * w[:, None]
+    first = apply_q(V, apply_qt(V, dv * w - dX @ beta).at[:n].set(0.0)) * w
+    # R^{-T} c by back substitution on the reversed (upper-triangular) R^T
+    c = jnp.where(full, dX.T @ r, 0.0)
+    u = solve_upper(Rg.T[::-1, ::-1], c[::-1])[::-1]
+    second = apply_q(V, jnp.zeros_like(v).at[:n].set(u)) * w
+    return r, first - second
 
 
 def arx_criterion(x, pv, weights, order: int = AR_ORDER):
     r"""The residual sum of squares of $PV_t$ regressed on a level, $PV_{t-1}, \ldots,
     PV_{t-order}$ and $x_{t-1}, \ldots, x_{t-order}$ (the valve path), over the
     samples `ar_residual` uses."""
-    X = jnp.concatenate([jnp.ones_like(pv)[:, None], lagged(pv, order), lagged(x, order)], axis=1)
-    return jnp.sum(_projected_out(X, pv, weights, order) ** 2)
+    return arx_criteria(pv, weights, order)(x)
+
+
+def arx_criteria(pv, weights, order: int = AR_ORDER):
+    """`arx_criterion` as a function of the valve path alone, for many paths against
+    one record: PV's own regressors (the level and PV's lags) are factored once, and
+    each path's lags are projected off them and factored alone (half the work of
+    factoring all the regressors again for every path)."""
+    w = _ar_weights(weights, order)
+    V1, _ = householder(_ar_regressors(pv, order) * w[:, None])
+    n1 = order + 1
+
+    def off(u):  # Q1^T u with the part in the span of PV's regressors removed
+        return apply_qt(V1, u).at[:n1].set(0.0)
+
+    y = off(pv * w)
+
+    def criterion(x):
+        Z = jax.vmap(off, in_axes=1, out_axes=1)(lagged(x, order) * w[:, None])
+        V2, _ = householder(Z)
+        return jnp.sum(apply_qt(V2, y)[order:] ** 2)
+
+    return criterion
 
 
 def polish_valve(model: LoopModel, op, pv, mask, initial: InitialState, *, order: int = AR_ORDER) -> LoopModel:
@@ -101,8 +176,10 @@ def polish_valve(model: LoopModel, op, pv, mask, initial: InitialState, *, order
     kano = model.chain[0]
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
 
+    criterion = arx_criteria(pv, w, order)
+
     def crit(S, J):
-        c = arx_criterion(with_valve(model, S, J).valve_path(op, initial), pv, w, order)
+        c = criterion(with_valve(model, S, J).valve_path(op, initial))
         return jnp.where((S > 0) & jnp.isfinite(c), c, big)
 
     crits = jax.vmap(crit)
@@ -160,8 +237,12 @@ def refine_process(model: LoopModel, op, pv, mask, initial: InitialState, *, ord
         th = jnp.where(free, theta0 + z * scale, theta0)
         return with_process(model, th[:nb], jnp.concatenate([a0[:1], th[nb:]]))
 
+    # the valve is not refitted: its path is computed once
+    x = model.valve_path(op, initial)
+
     def resid(z, _):
-        v = jnp.where(w > 0, pv - _simulate(at(z), op, initial), 0.0)
+        m = at(z)
+        v = jnp.where(w > 0, pv - m.process_output(x, _restarted(m, x, initial)), 0.0)
         return ar_residual(v, w, order)
 
     z0 = jnp.zeros_like(theta0)
@@ -187,9 +268,14 @@ RUNAWAY_FACTOR = 3.0
 def _start(model: LoopModel, op, initial: InitialState) -> InitialState:
     """`initial` with the process filter at rest for the first valve position (as
     `_simulate` restarts it)."""
+    return _restarted(model, model.valve_path(op[:1], initial), initial)
+
+
+def _restarted(model: LoopModel, x, initial: InitialState) -> InitialState:
+    """`initial` with the process filter at rest for the valve path `x`'s first
+    position."""
     b, a = model.process.polynomials()
-    x0 = model.valve_path(op[:1], initial)[0]
-    return eqx.tree_at(lambda i: i.filter, initial, steady_state(b, a, x0 - model.op_offset))
+    return eqx.tree_at(lambda i: i.filter, initial, steady_state(b, a, x[0] - model.op_offset))
 
 
 def _repaired_error(model: LoopModel, op, pv, weights, sp_sim, sp_stat, controller: Controller,
@@ -204,6 +290,10 @@ def _repaired_error(model: LoopModel, op, pv, weights, sp_sim, sp_stat, controll
     run = closed_loop(with_valve(model, jnp.zeros((), dtype), jnp.zeros((), dtype)), controller, sp_sim, v, start,
                       op[0])
     return _error_std(run.pv, sp_stat, weights)
+
+
+def _stack(*trees):
+    return jax.tree.map(lambda *t: jnp.stack(t), *trees)
 
 
 def _error_std(pv, sp, weights):
@@ -223,26 +313,24 @@ def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_
     `setpoints`) does not run away; without it, the one refit is. Pure and
     vmappable."""
     initial, _ = initial_and_sync(model, op, pv, mask, init_count)
-    plain, _, _, loss = refine_process(model, op, pv, mask, initial)
+    fitted = with_process(model, *model.process.polynomials())
+    plain, _, _, loss = refine_process(fitted, op, pv, mask, initial)
     if not polish:  # one candidate: nothing to choose between
         return plain
-    candidates = [(plain, loss, jnp.asarray(True), initial)]
     polished = polish_valve(model, op, pv, mask, initial)
     start, _ = initial_and_sync(polished, op, pv, mask, init_count)
     shifted = [_shifted(polished, k) for k in (0, -1, 1)]
-    models = jax.tree.map(lambda *t: jnp.stack(t), *[m for m, _ in shifted])
-    outs, _, _, losses = jax.vmap(lambda m: refine_process(m, op, pv, mask, start))(models)
-    candidates += [(jax.tree.map(lambda t, i=i: t[i], outs), losses[i], valid, start)
-                   for i, (_, valid) in enumerate(shifted)]
+    outs, _, _, losses = jax.vmap(lambda m: refine_process(m, op, pv, mask, start))(_stack(*[m for m, _ in shifted]))
+    # the four candidates: the fit's valve, then the polished one at three dead times
+    models = jax.tree.map(lambda p, o: jnp.concatenate([p[None], o]), plain, outs)
+    starts = _stack(initial, start, start, start)
+    losses = jnp.concatenate([loss[None], losses])
+    valid = jnp.stack([jnp.asarray(True)] + [v for _, v in shifted])
     w = (mask > 0).astype(op.dtype) * (jnp.arange(op.shape[0]) >= SKIP)
     recorded = _error_std(pv, sp_stat, w)
-    ok = [v & jnp.isfinite(l)
-          & ~(_repaired_error(m, op, pv, w, sp_sim, sp_stat, controller, i0) > RUNAWAY_FACTOR * recorded)
-          for m, l, v, i0 in candidates]
-    losses = jnp.stack([jnp.where(o, c[1], jnp.inf) for c, o in zip(candidates, ok)])
-    best = first_min(losses)
-    stacked = jax.tree.map(lambda *t: jnp.stack(t), *[c[0] for c in candidates])
-    chosen = jax.tree.map(lambda t: t[best], stacked)
+    repaired = jax.vmap(lambda m, i0: _repaired_error(m, op, pv, w, sp_sim, sp_stat, controller, i0))(models, starts)
+    ok = valid & jnp.isfinite(losses) & ~(repaired > RUNAWAY_FACTOR * recorded)
+    losses = jnp.where(ok, losses, jnp.inf)
+    chosen = jax.tree.map(lambda t: t[first_min(losses)], models)
     # no candidate qualifies: the fit as it is
-    fitted = with_process(model, *model.process.polynomials())
     return jax.tree.map(lambda c, m: jnp.where(jnp.any(jnp.isfinite(losses)), c, m), chosen, fitted)
