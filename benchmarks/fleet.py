@@ -5,6 +5,7 @@
     python benchmarks/fleet.py --json
     python benchmarks/fleet.py --threads 1         # one batched call at a time
     python benchmarks/fleet.py --small 64 --large 1024 --chunk 256   # on a GPU
+    python benchmarks/fleet.py --small 8 --large 128 --whatif   # what `screen --whatif` adds
 
 Simulated 1500-sample loops (the paper's process; half with Kano stiction, half
 with a linear valve; half following a GBN setpoint, half a setpoint that rarely moves), screened
@@ -15,6 +16,12 @@ fleet, both timed; the marginal seconds per loop are
 (t_large - t_small) / (large - small), so any fixed cost per call cancels. Also
 prints the balanced accuracy of `stiction_detected` on the fleet, and the status of
 every loop that is not ok.
+
+With `--whatif`, the same fleets are screened again with `ScreenSettings(whatif=
+WhatIfSettings())` (`screen --whatif`: every loop called sticky gets its what-if),
+after a warm-up of their own (which screens the paper's 1500-sample loop too, so
+that the what-if program compiles there), and the what-if's marginal cost is the difference of
+the two marginal costs, per screened loop and per loop called sticky.
 """
 
 import argparse
@@ -29,7 +36,16 @@ jax.config.update("jax_enable_x64", True)
 import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxstiction import Experiment, Kano, make_loop, screen_loops, ScreenSettings, simulate_loop  # noqa: E402
+from jaxstiction import (  # noqa: E402
+    Experiment,
+    Kano,
+    make_loop,
+    make_scenario,
+    screen_loops,
+    ScreenSettings,
+    simulate_loop,
+    WhatIfSettings,
+)
 from jaxstiction.internal import chunk_size, nominal_model  # noqa: E402
 
 
@@ -63,6 +79,12 @@ def marginal_cost(small=8, large=24, settings=ScreenSettings()) -> dict:
     `large` loops; the marginal seconds per loop, the balanced accuracy of
     `stiction_detected`, and the status of every loop that is not ok."""
     t_warm, _, _ = timed(chunk_size(1500, settings), 10 * (small + large), settings)  # compiles
+    if settings.whatif is not None:  # the what-if compiles on a loop called sticky: the paper's
+        rec = make_scenario("paper_sim").estimation
+        t0 = time.perf_counter()
+        screen_loops({"paper_sim": make_loop(np.asarray(rec.op), np.asarray(rec.pv), sp=np.asarray(rec.sp))},
+                     settings)
+        t_warm += time.perf_counter() - t0
     t_small, r1, tr1 = timed(small, 0, settings)
     t_large, r2, tr2 = timed(large, small, settings)
     marginal = (t_large - t_small) / (large - small)
@@ -74,7 +96,9 @@ def marginal_cost(small=8, large=24, settings=ScreenSettings()) -> dict:
     tnr = np.mean([not r["stiction_detected"] for r in neg])
     return dict(seconds_warm_up=t_warm, small=small, large=large, seconds_small=t_small, seconds_large=t_large,
                 marginal_seconds_per_loop=marginal, ok=sum(r["status"] == "ok" for r in res), loops=len(res),
-                balanced_accuracy=0.5 * (tpr + tnr), devices=len(jax.local_devices()), threads=settings.threads,
+                balanced_accuracy=0.5 * (tpr + tnr), sticky_small=sum(bool(r["stiction_detected"]) for r in r1),
+                sticky_large=sum(bool(r["stiction_detected"]) for r in r2),
+                devices=len(jax.local_devices()), threads=settings.threads,
                 failed={r["name"]: r["status"] for r in res if r["status"] != "ok"})
 
 
@@ -86,9 +110,19 @@ def main():
                    help="batched calls at once (ScreenSettings.threads; 0: one per CPU core)")
     p.add_argument("--chunk", type=int, default=0,
                    help="loops per batched call (ScreenSettings.chunk; 0: sized to the machine)")
+    p.add_argument("--whatif", action="store_true",
+                   help="also screen with --whatif and report what it adds per loop")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    out = marginal_cost(args.small, args.large, ScreenSettings(threads=args.threads, chunk=args.chunk))
+    settings = ScreenSettings(threads=args.threads, chunk=args.chunk)
+    out = marginal_cost(args.small, args.large, settings)
+    if args.whatif:
+        w = marginal_cost(args.small, args.large, ScreenSettings(threads=args.threads, chunk=args.chunk,
+                                                                 whatif=WhatIfSettings()))
+        added = w["marginal_seconds_per_loop"] - out["marginal_seconds_per_loop"]
+        more_sticky = w["sticky_large"] - w["sticky_small"]
+        out["whatif"] = dict(w, added_seconds_per_loop=added,
+                             added_seconds_per_sticky_loop=added * (args.large - args.small) / max(more_sticky, 1))
     if args.json:
         print(json.dumps(out))
         return
@@ -98,6 +132,14 @@ def main():
           f"{out['ok']}/{out['loops']} ok; balanced accuracy {out['balanced_accuracy']:.2f}")
     for status in out["failed"].values():
         print(f"  {status}")  # a loop's error names the loop
+    if args.whatif:
+        w = out["whatif"]
+        print(f"with --whatif: warm-up {w['seconds_warm_up']:.1f} s; {args.small} loops: {w['seconds_small']:.1f} s; "
+              f"{args.large} loops: {w['seconds_large']:.1f} s; "
+              f"marginal {w['marginal_seconds_per_loop']:.2f} s per loop")
+        print(f"--whatif adds {w['added_seconds_per_loop']:.2f} s per screened loop, "
+              f"{w['added_seconds_per_sticky_loop']:.2f} s per loop called sticky "
+              f"(called sticky: {w['sticky_small']} of {args.small}, {w['sticky_large']} of {args.large})")
 
 
 if __name__ == "__main__":

@@ -32,40 +32,54 @@ def _whatif_batch(fits, loops: Loop, settings: WhatIfSettings):
     return eqx.filter_vmap(lambda f, lp: whatif(f, lp, settings))(fits, loops)
 
 
+def whatif_batch_size(chunk: int) -> int:
+    """Sticky loops per batched what-if call: one on a CPU, where a batch costs
+    as much per loop as single calls (the refits' searches run to the batch's slowest
+    member) and padding a partly sticky chunk to its size would repeat work; the
+    chunk's size on an accelerator, where the batch runs in parallel. Either way
+    every call has one shape, so one compiled program serves the screen."""
+    return 1 if jax.default_backend() == "cpu" else chunk
+
+
 def add_whatif(records: list[dict], fits, loops: Loop, settings: WhatIfSettings, pictures: bool = False) -> None:
     """Give every sticky loop of a chunk (`records[i]["verdict"] == "stiction"`) its
     `whatif` object, in place. `fits` and `loops` are the chunk's batched fit and
-    loops (setpoints included); the sticky members run in one batched call of the
-    chunk's size (the others repeat the first sticky one and are dropped), so every
-    chunk of a bucket shares one compiled program. With `pictures`, each entry also
-    keeps the arrays of its what-if picture (`whatif_figure`)."""
+    loops (setpoints included); the sticky members run in batched calls of
+    `whatif_batch_size` (a last partial batch repeats its first member, dropped), so
+    every call shares one compiled program. With `pictures`, each entry also keeps
+    the arrays of its what-if picture (`whatif_figure`)."""
     sticky = [i for i, r in enumerate(records) if r.get("verdict") == "stiction" and r.get("status") == "ok"]
     if not sticky:
         return
-    size = loops.op.shape[0]
-    pick = np.asarray(sticky + [sticky[0]] * (size - len(sticky)))
-    try:
-        sub_fits, sub_loops = jax.tree.map(lambda t: jnp.asarray(t)[pick], (fits, loops))
-        w = jax.tree.map(np.asarray, _whatif_batch(sub_fits, sub_loops, settings))
-    except Exception as e:  # noqa: BLE001 - a failed what-if costs only its own field
-        for i in sticky:
-            records[i]["whatif"] = {"note": f"what-if failed: {error_line(e, 300)}"}
-        return
-    for k, i in enumerate(sticky):
-        wi = jax.tree.map(lambda t: t[k], w)
-        rec = records[i]
+    batch = whatif_batch_size(loops.op.shape[0])
+    for first in range(0, len(sticky), batch):
+        group = sticky[first:first + batch]
+        pick = np.asarray(group + [group[0]] * (batch - len(group)))
         try:
-            rec["whatif"] = whatif_json(wi, rec["Ts"], settings)
-        except Exception as e:  # noqa: BLE001
-            rec["whatif"] = {"note": f"what-if report failed: {error_line(e, 300)}"}
+            sub_fits, sub_loops = jax.tree.map(lambda t: jnp.asarray(t)[pick], (fits, loops))
+            w = jax.tree.map(np.asarray, _whatif_batch(sub_fits, sub_loops, settings))
+        except Exception as e:  # noqa: BLE001 - a failed what-if costs only its own field
+            for i in group:
+                records[i]["whatif"] = {"note": f"what-if failed: {error_line(e, 300)}"}
             continue
-        if pictures:
-            n = int(rec["samples"])
-            sp = np.asarray(loops.setpoint[i])[:n]
-            sp = sp if np.all(np.isfinite(sp)) else np.full(n, float(np.mean(np.asarray(loops.pv[i])[:n])))
-            rec["whatif_figure"] = {"sp": sp, "start": int(wi.start),
-                                    **{f"{q}_{s}": np.asarray(getattr(wi, f"{q}_{s}"))[:n]
-                                       for q in ("pv", "valve", "op") for s in ("as_is", "repaired", "compensated")}}
+        for k, i in enumerate(group):
+            _add_one(records[i], jax.tree.map(lambda t, k=k: t[k], w), loops, i, settings, pictures)
+
+
+def _add_one(rec: dict, wi, loops: Loop, i: int, settings: WhatIfSettings, pictures: bool) -> None:
+    """Loop `i`'s `whatif` object (and, with `pictures`, its picture's arrays)."""
+    try:
+        rec["whatif"] = whatif_json(wi, rec["Ts"], settings)
+    except Exception as e:  # noqa: BLE001
+        rec["whatif"] = {"note": f"what-if report failed: {error_line(e, 300)}"}
+        return
+    if pictures:
+        n = int(rec["samples"])
+        sp = np.asarray(loops.setpoint[i])[:n]
+        sp = sp if np.all(np.isfinite(sp)) else np.full(n, float(np.mean(np.asarray(loops.pv[i])[:n])))
+        rec["whatif_figure"] = {"sp": sp, "start": int(wi.start),
+                                **{f"{q}_{s}": np.asarray(getattr(wi, f"{q}_{s}"))[:n]
+                                   for q in ("pv", "valve", "op") for s in ("as_is", "repaired", "compensated")}}
 
 
 def read_criticality(path) -> dict[str, float]:
