@@ -120,3 +120,9 @@ def first_min(x, axis=None):
     """`jnp.argmin(x, axis)` on `coarse(x)`: the index of the least value, the first
     of those tied to 7 significant digits in float64."""
     return jnp.argmin(coarse(x), axis=axis)
+
+
+def stack_trees(*trees):
+    """The pytrees `trees` (one structure) stacked leaf by leaf along a new leading
+    axis: a batch for `vmap`."""
+    return jax.tree.map(lambda *t: jnp.stack(t), *trees)

@@ -21,7 +21,7 @@ from jaxtyping import Array
 from .._blocks import Kano
 from .._criteria import family_criteria, foe, score
 from .._loop import Loop
-from .._misc import chunked_vmap, first_min
+from .._misc import chunked_vmap, first_min, stack_trees
 from .._models import LinearProcess, LoopModel, pad_to, scaled_loop_model, SplineValve
 from .._spline import direction, hysteresis_regressors, noise_threshold, scale_input, valve_curves
 from .hammerstein import candidate_knots, CandidateFit, fit_spline_candidates, HammersteinModel
@@ -402,7 +402,7 @@ def _scores(p: Prepared, models: dict, settings: Settings, after) -> dict:
         wanted += [("phys", "val"), ("phys", "est")]
     if settings.use_spline:
         wanted += [("paper", "val"), ("spline", "val"), ("spline", "est")]
-    stacked = jax.tree.map(lambda *t: jnp.stack(t), *(models[m] for m, _ in wanted))
+    stacked = stack_trees(*(models[m] for m, _ in wanted))
     ws = jnp.stack([parts[w] for _, w in wanted])
     stacked, ws, _ = jax.lax.optimization_barrier((stacked, ws, after))
     out = jax.lax.map(lambda mw: score(mw[0], p.op, p.pv, mw[1], settings.score), (stacked, ws))

@@ -47,7 +47,7 @@ import optimistix as optx
 
 from .._filters import lagged, steady_state
 from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable, solve_upper
-from .._misc import first_min
+from .._misc import first_min, stack_trees
 from .._models import InitialState, LoopModel
 from .closedloop import closed_loop
 from .controller import Controller
@@ -292,10 +292,6 @@ def _repaired_error(model: LoopModel, op, pv, weights, sp_sim, sp_stat, controll
     return _error_std(run.pv, sp_stat, weights)
 
 
-def _stack(*trees):
-    return jax.tree.map(lambda *t: jnp.stack(t), *trees)
-
-
 def _error_std(pv, sp, weights):
     """The standard deviation of `sp − pv` over `weights`."""
     count = jnp.maximum(jnp.sum(weights), 1.0)
@@ -320,10 +316,11 @@ def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_
     polished = polish_valve(model, op, pv, mask, initial)
     start, _ = initial_and_sync(polished, op, pv, mask, init_count)
     shifted = [_shifted(polished, k) for k in (0, -1, 1)]
-    outs, _, _, losses = jax.vmap(lambda m: refine_process(m, op, pv, mask, start))(_stack(*[m for m, _ in shifted]))
+    shifted_models = stack_trees(*[m for m, _ in shifted])
+    outs, _, _, losses = jax.vmap(lambda m: refine_process(m, op, pv, mask, start))(shifted_models)
     # the four candidates: the fit's valve, then the polished one at three dead times
     models = jax.tree.map(lambda p, o: jnp.concatenate([p[None], o]), plain, outs)
-    starts = _stack(initial, start, start, start)
+    starts = stack_trees(initial, start, start, start)
     losses = jnp.concatenate([loss[None], losses])
     valid = jnp.stack([jnp.asarray(True)] + [v for _, v in shifted])
     w = (mask > 0).astype(op.dtype) * (jnp.arange(op.shape[0]) >= SKIP)

@@ -29,6 +29,7 @@ from jaxtyping import Array, Bool, Float
 from .._blocks import Kano
 from .._estimate.result import LoopFit
 from .._loop import Loop
+from .._misc import stack_trees
 from .._models import LoopModel
 from .closedloop import closed_loop, ClosedLoopRun, Knocker, loop_stats, LoopStats, settling_time
 from .compensate import Compensation, design_knocker, METHODS
@@ -143,10 +144,6 @@ def chi2_quantile(p: float, dof):
     return dof * (1.0 - 2.0 / (9.0 * dof) + z * jnp.sqrt(2.0 / (9.0 * dof))) ** 3
 
 
-def _stack(*trees):
-    return jax.tree.map(lambda *t: jnp.stack(t), *trees)
-
-
 def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_count: int,
              threshold: float, min_samples: int = 0) -> _Prepared:
     dtype = jnp.result_type(loop.op.dtype, loop.pv.dtype, jnp.float32)
@@ -169,7 +166,7 @@ def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_c
     start = jnp.minimum(start, n)
     window = mask * (jnp.arange(n) >= start)
     none = _no_knock(dtype)
-    runs = _runs3(_stack(model, repaired_model), controller, rp, _stack(none, none))
+    runs = _runs3(stack_trees(model, repaired_model), controller, rp, stack_trees(none, none))
     stats = jax.vmap(lambda r: loop_stats(r.pv, rp.sp_stat, r.valve, window, ts, threshold))(runs)
     first, second = (jax.tree.map(lambda t, i=i: t[i], (runs, stats)) for i in (0, 1))
     return _Prepared(model=model, controller=controller, replay=rp, mask=mask, window=window, start=start,
@@ -271,7 +268,7 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
         def one(m):
             r = replay(m, loop, ctrl, initial=rp.initial, sync=rp.sync)
             rep = with_valve(m, jnp.zeros((), dtype), jnp.zeros((), dtype))
-            runs = _runs3(_stack(m, rep, m), ctrl, r, _stack(none, none, design.knocker))
+            runs = _runs3(stack_trees(m, rep, m), ctrl, r, stack_trees(none, none, design.knocker))
             st = jax.vmap(lambda run: loop_stats(run.pv, r.sp_stat, run.valve, window, ts, threshold))(runs)
             return st, _innovation_variance(r, window)
 
