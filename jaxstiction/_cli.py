@@ -202,6 +202,7 @@ def _whatif_of(args, fit, loop, name: str) -> dict:
     import jax
     import numpy as np
 
+    from ._programs import exported_call
     from ._whatif.report import whatif_json
     from ._whatif.settings import WhatIfSettings
     from ._whatif.whatif import whatif
@@ -211,7 +212,9 @@ def _whatif_of(args, fit, loop, name: str) -> dict:
     controller = _controller(args, ts)
     _log(f"fit: {name}: closing the fitted loop again (as is, repaired, compensated) ...")
     t0 = time.time()
-    w = jax.tree.map(np.asarray, whatif(fit, loop, settings, controller=controller))
+    # from its exported program: a new process loads it instead of tracing it again
+    w = jax.tree.map(np.asarray, exported_call("whatif-one", lambda f, lp, c: whatif(f, lp, settings, controller=c),
+                                               fit, loop, controller, static=repr(settings)))
     _log(f"fit: what-if done in {time.time() - t0:.1f} s")
     entry = whatif_json(w, ts, settings)
     if args.out:
@@ -400,6 +403,7 @@ def cmd_compensate(args):
     from ._estimate.settings import FULL_SEARCH_ESTIMATE
     from ._io.read import loop_name, read_loop
     from ._loop import decimate
+    from ._programs import exported_call
     from ._whatif.report import compensation_json
     from ._whatif.settings import CompensateSettings
     from ._whatif.whatif import compensate
@@ -419,7 +423,8 @@ def cmd_compensate(args):
     _log(f"compensate: fitted in {time.time() - t0:.1f} s (S = {r.S:.3g}, J = {r.J:.3g} % of span); designing a "
          f"knocker ({args.method}) ...")
     t0 = time.time()
-    c = jax.tree.map(np.asarray, compensate(r.fit, loop, settings, controller=controller))
+    c = jax.tree.map(np.asarray, exported_call("compensate", lambda f, lp, k: compensate(f, lp, settings, controller=k),
+                                               r.fit, loop, controller, static=repr(settings)))
     _log(f"compensate: designed in {time.time() - t0:.1f} s")
     payload = {"name": name, **compensation_json(c, ts), "S": r.S, "J": r.J, "fitness": r.fitness,
                **_decimate_field(args)}

@@ -72,7 +72,7 @@ from ._estimate.physical import (
     PhysicalFit as PhysicalFit,
     valve_from as valve_from,
 )
-from ._estimate.programs import _source_hash as source_hash, simulations_of as simulations_of
+from ._estimate.programs import simulations_of as simulations_of
 from ._estimate.reduce import (
     asymptotic_weight as asymptotic_weight,
     fit_noise_model as fit_noise_model,
@@ -117,6 +117,7 @@ from ._plots import (
     write_diagnosis_figures as write_diagnosis_figures,
     write_fit_figures as write_fit_figures,
 )
+from ._programs import exported_call as exported_call, source_hash as source_hash
 from ._scenarios import (
     nominal_model as nominal_model,
     p_experiment as p_experiment,

@@ -31,7 +31,6 @@ CHEM23 in one process, one run each: first call 38.4 → 32.5 s, later calls
 from __future__ import annotations
 
 import collections
-import functools
 import hashlib
 import os
 import pathlib
@@ -47,6 +46,14 @@ import jax.numpy as jnp
 from .._criteria import simulate_scored
 from .._loop import Loop
 from .._misc import release_freed_memory
+from .._programs import (
+    arrays as _arrays,
+    is_struct as _is_struct,
+    rebuild as _rebuild,
+    shapes as _shapes,
+    use_folder,
+    versions,
+)
 from .estimate import _finish, _physical_stage, _prepare, _spline_stage, estimate, estimation_parts
 from .result import LoopFit
 from .settings import Settings
@@ -59,35 +66,17 @@ _KEEP = 4  # programs kept in memory: a process fitting many record lengths must
 
 
 def use_program_cache(path: str | os.PathLike | None):
-    """Keep exported `estimate` programs in folder `path` (`None`: do not)."""
+    """Keep exported `estimate` programs, and the other programs `exported_call`
+    keeps, in folder `path` (`None`: do not)."""
     global _where
     _where = None if path is None else pathlib.Path(path)
-
-
-@functools.cache
-def _source_hash(exclude: tuple[str, ...] = ()) -> str:
-    """A hash of every source file of the package, its subpackages' too, but those
-    in `exclude` (paths relative to the package, e.g. `"_verdict/calibration.py"`)."""
-    package = pathlib.Path(__file__).parents[1]
-    h = hashlib.sha256()
-    for f in sorted(package.rglob("*.py")):
-        if f.relative_to(package).as_posix() in exclude:
-            continue
-        h.update(f.relative_to(package).as_posix().encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()
+    use_folder(path)
 
 
 def _key(loop: Loop, settings: Settings) -> str:
-    import jaxlib
-
-    parts = [_source_hash(), jax.__version__, jaxlib.__version__, str(jax.config.jax_enable_x64), repr(settings)]
+    parts = versions() + [repr(settings)]
     parts += [f"{jnp.shape(x)}{jnp.result_type(x)}" for x in (loop.op, loop.pv, loop.mask, loop.ts)]
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
-
-
-def _is_struct(x):
-    return isinstance(x, jax.ShapeDtypeStruct)
 
 
 @eqx.filter_jit  # one compiled call (cached across processes) rather than op-by-op dispatch
@@ -109,21 +98,6 @@ def simulations_of(fit: LoopFit, op, pv, weights, score):
         )
 
     return tuple(shown(m) for m in (fit.model, fit.paper))
-
-
-def _shapes(tree):
-    """`tree` with its arrays replaced by their shapes (the rest kept)."""
-    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype) if eqx.is_array(x) else x, tree)
-
-
-def _arrays(tree) -> list:
-    return jax.tree.leaves(eqx.filter(tree, eqx.is_array))
-
-
-def _rebuild(skeleton, leaves):
-    """The tree of `skeleton` (from `_shapes`) with `leaves` for its arrays."""
-    dynamic, static = eqx.partition(skeleton, _is_struct, is_leaf=_is_struct)
-    return eqx.combine(jax.tree.unflatten(jax.tree.structure(dynamic, is_leaf=_is_struct), leaves), static)
 
 
 def _export(loop: Loop, settings: Settings):

@@ -12,6 +12,7 @@ chunk runner calls `add_whatif` only when `ScreenSettings.whatif` is set.
 from __future__ import annotations
 
 import csv
+import functools
 import math
 from pathlib import Path
 
@@ -22,14 +23,22 @@ import numpy as np
 
 from .._checks import error_line, LoopDataError
 from .._loop import Loop
+from .._programs import exported_call
 from .._whatif.report import whatif_json
 from .._whatif.settings import WhatIfSettings
 from .._whatif.whatif import whatif
 
 
 @eqx.filter_jit
-def _whatif_batch(fits, loops: Loop, settings: WhatIfSettings):
+def _whatif_vmapped(fits, loops: Loop, settings: WhatIfSettings):
     return eqx.filter_vmap(lambda f, lp: whatif(f, lp, settings))(fits, loops)
+
+
+def _whatif_batch(fits, loops: Loop, settings: WhatIfSettings):
+    """The what-if of a batch of loops, from its exported program (`exported_call`:
+    a new process loads it instead of tracing it again)."""
+    return exported_call("whatif", functools.partial(_whatif_vmapped, settings=settings), fits, loops,
+                         static=repr(settings))
 
 
 def whatif_batch_size(chunk: int) -> int:
