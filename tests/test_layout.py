@@ -21,7 +21,7 @@ import pytest
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "jaxstiction"
 
 CORE = {"_blocks", "_checks", "_criteria", "_drawing", "_filters", "_fleet", "_linalg", "_loop", "_misc", "_models",
-        "_scenarios", "_simulate", "_spline"}
+        "_programs", "_scenarios", "_simulate", "_spline"}
 ROOMS = {"_io": 1, "_estimate": 1, "_verdict": 2, "_diagnose": 3, "_whatif": 3, "_screen": 4}
 TOP = {"__init__", "__main__", "internal", "_cli", "_demo", "_plots"}
 LEVEL = {"core": 0, **ROOMS, "top": 5}
