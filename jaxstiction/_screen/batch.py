@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import itertools
 import math
 import threading
@@ -34,6 +35,7 @@ from .._estimate.result import delay_note, held_out_note, KINDS, RESULTS
 from .._estimate.settings import Settings
 from .._loop import bucket_length, Loop, make_loop, stack
 from .._misc import json_number as _r, thread_map
+from .._programs import exported_call
 from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
 from .._verdict.verdict import CAUSES, FEATURES, runaway, usable, verdict, verdict_reason, VERDICTS
@@ -203,7 +205,10 @@ def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSe
         batch = stack(loops, length)
         if device is not None:
             batch = jax.device_put(batch, device)
-        fits, vers = _batch(batch, settings.estimate, settings.verdict)
+        # from its exported program: a new process loads it instead of tracing it again
+        fits, vers = exported_call("screen", functools.partial(_batch, settings=settings.estimate,
+                                                                vset=settings.verdict),
+                                   batch, static=repr(settings.estimate) + repr(settings.verdict))
         fits, vers = jax.tree.map(np.asarray, (fits, vers))
     except Exception as e:  # noqa: BLE001 - an XLA failure must cost only its own loops
         if len(items) > 1:
