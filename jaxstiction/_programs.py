@@ -93,8 +93,8 @@ def versions() -> list[str]:
 
 
 def _export(fn, args, skeleton):
-    """`fn(*args)` exported on the flat list of its arguments' arrays, and the skeleton
-    that rebuilds its result."""
+    """`((exported,), skeleton)`: `fn(*args)` exported on the flat list of its
+    arguments' arrays, and the skeleton that rebuilds its result."""
     leaves = arrays(args)
     out = {}
 
@@ -104,12 +104,12 @@ def _export(fn, args, skeleton):
         return arrays(result)
 
     exported = jax.export.export(jax.jit(flat))(*[jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves])
-    return exported, out["skeleton"]
+    return (exported,), out["skeleton"]
 
 
-def _save(path: pathlib.Path, exported, skeleton):
+def _save(path: pathlib.Path, programs, skeleton):
     path.parent.mkdir(parents=True, exist_ok=True)
-    blob = pickle.dumps((bytes(exported.serialize()), skeleton))
+    blob = pickle.dumps(([None if e is None else bytes(e.serialize()) for e in programs], skeleton))
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(fd, "wb") as f:
         f.write(blob)
@@ -117,8 +117,47 @@ def _save(path: pathlib.Path, exported, skeleton):
 
 
 def _load(path: pathlib.Path):
-    blob, skeleton = pickle.loads(path.read_bytes())
-    return jax.export.deserialize(bytearray(blob)), skeleton
+    blobs, skeleton = pickle.loads(path.read_bytes())
+    return tuple(None if b is None else jax.export.deserialize(bytearray(b)) for b in blobs), skeleton
+
+
+def recall(table: collections.OrderedDict, key: str):
+    """`table[key]`, marked most recently used, or `None`."""
+    with _lock:  # the screen runs chunks, and `fit` callers loops, on several threads
+        hit = table.get(key)
+        if hit is not None:
+            table.move_to_end(key)
+    return hit
+
+
+def remember(table: collections.OrderedDict, key: str, value, keep: int):
+    """`table[key] = value`, keeping only the `keep` most recently used entries."""
+    with _lock:
+        table[key] = value
+        while len(table) > keep:  # the least recently used goes
+            table.popitem(last=False)
+
+
+def load_or_export(filename: str, export):
+    """`(programs, skeleton)`: read from `filename` in the `use_folder` folder when it
+    is there and loads, else `export()` (a tuple of `jax.export.Exported`, or `None`
+    for a program not needed, and what rebuilds the results), saved there when a
+    folder is named. A file that fails to load is rebuilt; one that fails to save is
+    only a missed speed-up. An error of `export()` reaches the caller, whose plain
+    call then gives the same answer."""
+    path = None if _where is None else _where / filename
+    if path is not None and path.exists():
+        try:
+            return _load(path)
+        except Exception:  # stale or corrupt: rebuilt below
+            pass
+    entry = export()
+    if path is not None:
+        try:
+            _save(path, *entry)
+        except Exception:  # e.g. a read-only folder or no `flatbuffers`: not saved
+            pass
+    return entry
 
 
 def exported_call(name: str, fn, *args, static: str = ""):
@@ -131,33 +170,13 @@ def exported_call(name: str, fn, *args, static: str = ""):
                           repr([(x.shape, str(x.dtype)) for x in jax.tree.leaves(skeleton, is_leaf=is_struct)
                                 if is_struct(x)])]
     key = hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
-    with _lock:  # the screen runs chunks on several threads
-        hit = _loaded.get(key)
-        if hit is not None:
-            _loaded.move_to_end(key)
+    hit = recall(_loaded, key)
     if hit is None:
-        path = None if _where is None else _where / f"{name}-{key}.jaxexport"
-        entry = None
-        if path is not None and path.exists():
-            try:
-                entry = _load(path)
-            except Exception:  # stale or corrupt: rebuilt below
-                entry = None
-        if entry is None:
-            try:
-                entry = _export(fn, args, skeleton)
-            except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
-                return fn(*args)
-            if path is not None:
-                try:
-                    _save(path, *entry)
-                except Exception:  # e.g. a read-only folder or no `flatbuffers`: not saved
-                    pass
-        exported, out_skeleton = entry
+        try:
+            (exported,), out_skeleton = load_or_export(f"{name}-{key}.jaxexport", lambda: _export(fn, args, skeleton))
+        except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
+            return fn(*args)
         hit = (jax.jit(exported.call), out_skeleton)
-        with _lock:
-            _loaded[key] = hit
-            while len(_loaded) > _KEEP:  # the least recently used goes
-                _loaded.popitem(last=False)
+        remember(_loaded, key, hit, _KEEP)
     runner, out_skeleton = hit
     return rebuild(out_skeleton, runner(*arrays(args)))

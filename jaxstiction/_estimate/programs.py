@@ -33,10 +33,6 @@ from __future__ import annotations
 import collections
 import hashlib
 import os
-import pathlib
-import pickle
-import tempfile
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
@@ -49,7 +45,10 @@ from .._misc import release_freed_memory
 from .._programs import (
     arrays as _arrays,
     is_struct as _is_struct,
+    load_or_export,
     rebuild as _rebuild,
+    recall,
+    remember,
     shapes as _shapes,
     use_folder,
     versions,
@@ -59,17 +58,13 @@ from .result import LoopFit
 from .settings import Settings
 
 
-_where: pathlib.Path | None = None
 _loaded: collections.OrderedDict = collections.OrderedDict()  # key -> (compiled, skeletons), most recent last
-_lock = threading.Lock()
 _KEEP = 4  # programs kept in memory: a process fitting many record lengths must not grow without bound
 
 
 def use_program_cache(path: str | os.PathLike | None):
     """Keep exported `estimate` programs, and the other programs `exported_call`
     keeps, in folder `path` (`None`: do not)."""
-    global _where
-    _where = None if path is None else pathlib.Path(path)
     use_folder(path)
 
 
@@ -166,20 +161,6 @@ def _run(compiled, sk, loop: Loop) -> tuple[LoopFit, tuple]:
     return _rebuild(sk["finish"], c_finish(*record, *p, *cand, *(phys[0] if phys else [])))
 
 
-def _save(path: pathlib.Path, programs, skeletons):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    blob = pickle.dumps(([None if e is None else bytes(e.serialize()) for e in programs], skeletons))
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        f.write(blob)
-    os.replace(tmp, path)
-
-
-def _load(path: pathlib.Path):
-    blobs, skeletons = pickle.loads(path.read_bytes())
-    return tuple(None if b is None else jax.export.deserialize(bytearray(b)) for b in blobs), skeletons
-
-
 def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFit, tuple | None]:
     """`(fit, simulations)`: [`jaxstiction.estimate`][] and the simulations of its
     chosen and its paper's model over the whole record (`simulate_scored`), from the
@@ -187,36 +168,17 @@ def estimate_cached(loop: Loop, settings: Settings = Settings()) -> tuple[LoopFi
     when the application has enabled the cache; the same results. Where JAX cannot
     export them, `estimate` itself and no `simulations` (`None`)."""
     key = _key(loop, settings)
-    with _lock:  # `fit` may be called from several threads
-        hit = _loaded.get(key)
-        if hit is not None:
-            _loaded.move_to_end(key)
+    hit = recall(_loaded, key)
     if hit is not None:
         return _run(*hit, loop)
-    path = None if _where is None else _where / f"estimate-{key}.jaxexport"
-    entry = None
-    if path is not None and path.exists():
-        try:
-            entry = _load(path)
-        except Exception:  # stale or corrupt: rebuilt below
-            entry = None
-    if entry is None:
-        try:
-            entry = _export(loop, settings)
-        except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
-            return estimate(loop, settings), None
-        if path is not None:
-            try:
-                _save(path, *entry)
-            except Exception:  # e.g. a read-only cache or no `flatbuffers`: not saved
-                pass
+    try:
+        entry = load_or_export(f"estimate-{key}.jaxexport", lambda: _export(loop, settings))
+    except Exception:  # e.g. an unexportable JAX build: no speed-up, same answer
+        return estimate(loop, settings), None
     programs, skeletons = entry
     # compiled apart from the run, so that what the compiler freed can be handed
     # back before the run's buffers are allocated (see `release_freed_memory`)
     compiled = _compiled(programs)
     release_freed_memory()
-    with _lock:
-        _loaded[key] = (compiled, skeletons)
-        while len(_loaded) > _KEEP:  # the least recently used shape goes
-            _loaded.popitem(last=False)
+    remember(_loaded, key, (compiled, skeletons), _KEEP)
     return _run(compiled, skeletons, loop)
