@@ -13,7 +13,7 @@ from test_whatif import _plant_loop, KI, KP, reference_loop
 
 from jaxstiction import Controller
 from jaxstiction._filters import lagged
-from jaxstiction._whatif.refine import _projected_out, _repaired_error, _simulate as refine_simulate, arx_criteria, SKIP
+from jaxstiction._whatif.refine import _projected_out, _repaired_error, _start, arx_criteria, SKIP
 from jaxstiction._whatif.replay import setpoints
 from jaxstiction.internal import (
     ar_residual,
@@ -204,7 +204,7 @@ def _criterion(model, loop, initial_from):
     w = (jnp.asarray(loop.mask) > 0).astype(op.dtype)
     initial, _ = initial_and_sync(initial_from, op, pv, w, 8)
     ws = w * (jnp.arange(op.shape[0]) >= SKIP)
-    v = jnp.where(ws > 0, pv - refine_simulate(model, op, initial), 0.0)
+    v = jnp.where(ws > 0, pv - model.simulate(op, _start(model, op, initial)), 0.0)
     return float(jnp.sum(ar_residual(v, ws) ** 2))
 
 

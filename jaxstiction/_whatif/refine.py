@@ -212,13 +212,6 @@ def _shifted(model: LoopModel, k: int):
     return with_process(model, jnp.roll(b, k), a), valid
 
 
-def _simulate(model: LoopModel, op, initial: InitialState):
-    """`model.simulate` from `initial`, its process filter restarted at rest for the
-    first valve position (the refit changes the process, so the fit's filter state
-    no longer applies)."""
-    return model.simulate(op, _start(model, op, initial))
-
-
 def refine_process(model: LoopModel, op, pv, mask, initial: InitialState, *, order: int = AR_ORDER,
                    max_steps: int = 40):
     """`(model, refined, result, loss)`: `model` with its process refitted (see the
@@ -267,7 +260,8 @@ RUNAWAY_FACTOR = 3.0
 
 def _start(model: LoopModel, op, initial: InitialState) -> InitialState:
     """`initial` with the process filter at rest for the first valve position (as
-    `_simulate` restarts it)."""
+    `refine_process` restarts it: it changes the process, so the fit's filter state
+    no longer applies)."""
     return _restarted(model, model.valve_path(op[:1], initial), initial)
 
 
