@@ -21,7 +21,11 @@ import pytest  # noqa: E402
 # folder (XLA's cache is keyed by the compiled program itself, so nothing stale is
 # ever loaded). Set JAXSTICTION_CACHE to use another folder, or `off` to compile
 # everything every time.
-_cache = cache_folder("test-xla")
+#
+# Each pytest-xdist worker has a folder of its own: JAX reads and writes a cache
+# folder's entries without a lock, and a worker once died of a segmentation fault
+# deserialising an entry the other worker was still writing.
+_cache = cache_folder("test-xla-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
 os.environ.setdefault("JAXSTICTION_CACHE", _cache or "off")
 if _cache is not None:
     xla_cache(_cache)
