@@ -176,7 +176,8 @@ class Settings(eqx.Module):
 # find the true band, the screen calls 39 of P1's and P10's 40 records (seeds 0-19)
 # sticky instead of 33, and on the plant development half every sticky recording's
 # leave-one-valve-out probability rises except L74's (0.500 -> 0.495, across the
-# threshold). The second start costs about a fifth of a loop's screen.
+# threshold). The second start costs 40 % more per loop: `benchmarks/fleet.py --small
+# 8 --large 1024` measured 0.52 s per 1500-sample loop marginal, against 0.37 s with one.
 SCREEN_ESTIMATE = Settings(
     use_spline=False,
     physical=PhysicalSettings(arx_order=4, starts=4, refine=11, refine_S=41, line=21, rounds=2, polish_starts=2,
