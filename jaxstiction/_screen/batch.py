@@ -44,9 +44,11 @@ from .settings import ScreenSettings
 
 # Bytes of device memory one loop-sample of the screen's batched estimate holds at its
 # peak (the verdict, a separate call, needs less): XLA's memory analysis of the
-# compiled call on a CPU, 1500-sample loops, 100 MB of temporaries for one loop and
-# 325 MB for four, so (325 - 100) / 3 / 1500 = 50 kB per loop-sample.
-SCREEN_BYTES_PER_SAMPLE = 50_000
+# compiled call on a CPU, 1500-sample loops, 197 MB of temporaries for one loop and
+# 637 MB for four, so (637 - 197) / 3 / 1500 = 98 kB per loop-sample (the Kano
+# search's two polish starts hold twice the final Box-Jenkins fits of one: 100 and
+# 325 MB, 50 kB, with one).
+SCREEN_BYTES_PER_SAMPLE = 98_000
 CPU_CHUNK, CPU_SAMPLES_PER_CALL = 2, 8000
 MAX_CHUNK = 1024
 

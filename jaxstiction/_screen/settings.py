@@ -21,8 +21,9 @@ class ScreenSettings(eqx.Module):
       default) sizes each from the machine (`auto_batch`): on a CPU, 2 loops and
       8000 samples per call (the fastest on 2 cores, where XLA runs a call on one
       core); on a GPU or TPU, as many loops as a quarter of the device's memory
-      holds, at most 1024 (on an NVIDIA H200, 1500-sample loops cost 0.090, 0.027 and
-      0.012 s each at 64, 256 and 1024 loops per call). A `chunk` given is used as
+      holds, at most 1024 (on an NVIDIA H200, with one polish start in the Kano
+      search, 1500-sample loops cost 0.090, 0.027 and 0.012 s each at 64, 256 and
+      1024 loops per call). A `chunk` given is used as
       it is, cut by `samples_per_call` only when that is given too. The results do
       not depend on the chunk.
     - `threads`: batched calls run at once, each on its own thread (0: one per CPU
