@@ -18,12 +18,17 @@ computes it, for three sets of loops:
 The probability's coefficients are fitted (`fit_calibration`: an L2-penalised
 logistic regression) on the fit seeds and the real labelled records together, the
 real records weighted so that they carry two thirds of the total weight
-(`--real-share`; the sweep behind that choice is on the results page). Printed:
+(`--real-share`; the sweep behind that choice is on the results page). Within the
+fleet and within the real records, the sticky and the healthy loops each carry
+half of that part's weight: the probability is then at even prior odds, and its
+cut at 0.5 is the one that maximises balanced accuracy, the figure the verdict is
+judged by (`--natural-odds` weighs every record of a part the same, as drawn).
+Printed:
 
 - the fitted coefficients (written to `jaxstiction/_verdict/calibration.py` with
   `--write`);
 - on the check seeds: a reliability table (predicted against observed stiction
-  rate, by probability decile) and the balanced accuracy of `stiction_detected`,
+  rate at the same odds, by probability decile) and the balanced accuracy of `stiction_detected`,
   counting `inconclusive` as not sticky, by kind, and over the loops whose valve
   slipped at least four times in the record (a sticky valve that never moves cannot
   be seen);
@@ -60,6 +65,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 SHARED = HERE.parents[1] / "shared" / "data"
 ISDB_LABELS = {"CHEM1": True, "CHEM10": True, "CHEM23": True, "CHEM13": False, "PAP4": False, "PAP7": False}
 REAL_SHARE = 2 / 3  # of the total weight carried by the real records (--real-share)
+BALANCED = True  # sticky and healthy weigh the same in each part (--natural-odds: as drawn)
 
 
 def fleet_entries(seeds, threads):
@@ -116,14 +122,31 @@ def matrix(entries):
     return np.array([[e["features"][k] for k in FEATURES] for e in entries], float)
 
 
+def weights(sim_labels, real_labels):
+    """Sample weights of the fit: the fleet's loops weigh one each on average, and
+    the real records together carry `REAL_SHARE` of the total weight. With
+    `BALANCED`, sticky and healthy carry half of each part's weight, so the
+    probability is at even prior odds, where 0.5 is the cut that maximises
+    balanced accuracy; else every record of a part weighs the same."""
+    ys = np.asarray(sim_labels, float)
+    parts = [(ys, float(len(ys)))]
+    if len(real_labels):
+        parts.append((np.asarray(real_labels, float), REAL_SHARE / (1 - REAL_SHARE) * len(ys)))
+    out = []
+    for y, total in parts:
+        w = np.full(len(y), total / len(y))
+        if BALANCED and 0 < y.sum() < len(y):
+            w = np.where(y > 0, 0.5 * total / y.sum(), 0.5 * total / (len(y) - y.sum()))
+        out.append(w)
+    return np.concatenate(out)
+
+
 def fit(sim, real):
     """Calibration fitted on fleet entries `sim` (truth) and real entries `real` (label)."""
     X = np.concatenate([matrix(sim), matrix(real)]) if real else matrix(sim)
-    y = np.array([e["truth"]["sticky"] for e in sim] + [e["label"] for e in real], float)
-    w = np.ones(len(y))
-    if real:
-        w[len(sim):] = REAL_SHARE / (1 - REAL_SHARE) * len(sim) / len(real)
-    return fit_calibration(X, y, w, names=FEATURES)
+    ys = [e["truth"]["sticky"] for e in sim]
+    yr = [e["label"] for e in real]
+    return fit_calibration(X, np.array(ys + yr, float), weights(ys, yr), names=FEATURES)
 
 
 def called(entry, calibration, threshold=0.5):
@@ -191,17 +214,24 @@ def report_real(title, sim, real, with_real):
 
 
 def reliability(check, cal):
+    """Predicted against observed stiction rate by probability decile. With
+    `BALANCED` the observed rate is taken at even odds (each class's loops
+    weighted by one over its count), as the probability is."""
     check = [e for e in check if e["status"] == "ok"]
     p = np.array([float(cal.probability(np.array([e["features"][k] for k in FEATURES]))) for e in check])
-    y = np.array([e["truth"]["sticky"] for e in check])
-    print("\n  reliability on the check seeds (probability decile: mean predicted, observed sticky rate, loops)")
+    y = np.array([e["truth"]["sticky"] for e in check], float)
+    w = np.where(y > 0, 0.5 / y.sum(), 0.5 / (len(y) - y.sum())) if BALANCED else np.full(len(y), 1 / len(y))
+    odds = "at even odds" if BALANCED else "as drawn"
+    print("\n  reliability on the check seeds (probability decile: mean predicted, "
+          f"observed sticky rate {odds}, loops)")
     edges = np.linspace(0, 1, 11)
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = (p >= lo) & (p < hi if hi < 1 else p <= hi)
         if m.any():
-            print(f"    [{lo:.1f}, {hi:.1f}): {p[m].mean():.2f}  {y[m].mean():.2f}  {m.sum()}")
-    brier = float(np.mean((p - y) ** 2))
-    print(f"    Brier score {brier:.3f} (a constant at the base rate {y.mean():.2f}: {y.mean() * (1 - y.mean()):.3f})")
+            print(f"    [{lo:.1f}, {hi:.1f}): {p[m].mean():.2f}  {np.average(y[m], weights=w[m]):.2f}  {m.sum()}")
+    base = float(np.average(y, weights=w))
+    brier = float(np.average((p - y) ** 2, weights=w))
+    print(f"    Brier score {brier:.3f} (a constant at the base rate {base:.2f}: {base * (1 - base):.3f})")
 
 
 def report_sim(check, cal):
@@ -223,7 +253,7 @@ def report_sim(check, cal):
 
 
 def main():
-    global REAL_SHARE
+    global REAL_SHARE, BALANCED
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--fit-seeds", type=seeds_arg, default=seeds_arg("0-399"))
     parser.add_argument("--check-seeds", type=seeds_arg, default=seeds_arg("400-599"))
@@ -234,12 +264,15 @@ def main():
     parser.add_argument("--fresh", action="store_true", help="recompute the cached evidence")
     parser.add_argument("--ceiling", action="store_true",
                         help="also the best classifier tried over all the evidence (needs scikit-learn)")
+    parser.add_argument("--natural-odds", action="store_true",
+                        help="weigh every record of a part the same, not sticky and healthy half each")
     parser.add_argument("--real-share", type=float, default=REAL_SHARE,
                         help="share of the total weight carried by the real records (default 2/3)")
     args = parser.parse_args()
     if not 0 < args.real_share < 1:
         parser.error("--real-share must lie strictly between 0 and 1")
     REAL_SHARE = args.real_share
+    BALANCED = not args.natural_odds
 
     out = HERE / "out"
     sim = cached(out / f"fleet_{seeds_text(args.fit_seeds)}.json",
@@ -289,7 +322,8 @@ def ceiling(sim, check, real):
         return e["status"] == "ok" and e["gate"] not in HARD
 
     train = [e for e in sim if judged(e)]
-    model = GradientBoostingClassifier(random_state=0).fit(rows(train), [e["truth"]["sticky"] for e in train])
+    y_train = [e["truth"]["sticky"] for e in train]
+    model = GradientBoostingClassifier(random_state=0).fit(rows(train), y_train, sample_weight=weights(y_train, []))
     scored = [e for e in check if judged(e)]
     calls = dict(zip([e["name"] for e in scored], model.predict(rows(scored)).astype(bool)))
     print("\nceiling: gradient-boosted trees over all the evidence, fitted on the fit seeds")
@@ -307,7 +341,7 @@ def ceiling(sim, check, real):
         others = [e for e in labelled if e["valve"] != valve]
         X = np.concatenate([rows(train), rows(others)])
         y = [e["truth"]["sticky"] for e in train] + [e["label"] for e in others]
-        w = np.r_[np.ones(len(train)), np.full(len(others), REAL_SHARE / (1 - REAL_SHARE) * len(train) / len(others))]
+        w = weights(y[:len(train)], y[len(train):])
         m = GradientBoostingClassifier(random_state=0).fit(X, y, sample_weight=w)
         mine = [e for e in plant if e["valve"] == valve]
         plant_calls.update(zip([e["name"] for e in mine], m.predict(rows(mine)).astype(bool)))

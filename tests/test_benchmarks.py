@@ -73,3 +73,21 @@ def test_compare_screens_names_what_differs(monkeypatch, capsys, tmp_path):
     out = capsys.readouterr().out
     assert "2 loops: 1 identical in every field" in out
     assert "verdict: the same on every loop" in out and "b: 1 fields differ, e.g. S 1.0 / 1.5" in out
+
+
+@pytest.mark.parametrize("balanced", [True, False])
+def test_calibration_weights(balanced, monkeypatch):
+    # the real records carry `REAL_SHARE` of the weight; balanced, each class half of its part
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import calibrate_probability as cp
+
+    monkeypatch.setattr(cp, "BALANCED", balanced)
+    sim, real = [1, 0, 0, 0, 0], [1, 1, 0]
+    w = cp.weights(sim, real)
+    ws, wr = w[:5], w[5:]
+    assert ws.sum() == pytest.approx(5.0)
+    assert wr.sum() / w.sum() == pytest.approx(cp.REAL_SHARE)
+    for part, y in ((ws, sim), (wr, real)):
+        sticky = part[[bool(v) for v in y]].sum() / part.sum()
+        assert sticky == pytest.approx(0.5 if balanced else sum(y) / len(y))
+    assert cp.weights(sim, []).sum() == pytest.approx(5.0)

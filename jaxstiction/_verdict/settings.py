@@ -40,7 +40,8 @@ class VerdictSettings(eqx.Module):
     of evidence among several. The verdict itself:
 
     - `threshold`: the stiction probability at or above which a loop is called
-      sticky.
+      sticky. The probability is at even prior odds, so 0.5 weighs a missed sticky
+      valve and a healthy one called sticky alike; lower it where a miss costs more.
     - the data-quality gate (see the verdict's module notes): `max_saturated`, the
       share of samples with OP at an extreme; `max_compressed`, the share of one
       signal's moves on which the other repeats its previous value, with no flat run

@@ -38,7 +38,9 @@ The error is `SP − PV` when the record carries a setpoint, else `−PV`.
 **Probability.** The evidence becomes a feature vector (`features`, `FEATURES`)
 and a logistic model, calibrated on a simulated realistic fleet and on labelled
 real records (`jaxstiction.internal.CALIBRATION`, from
-`benchmarks/calibrate_probability.py`), turns it into `probability`.
+`benchmarks/calibrate_probability.py`), turns it into `probability`: the
+probability at even prior odds (sticky and healthy loops weighed the same in the
+fit), so that `threshold` 0.5 is the cut that maximises balanced accuracy.
 
 **Gate** (`gate`): a record whose PV is frozen, whose OP sits at a stop, or which
 the historian compressed into flat runs is `inconclusive` whatever the evidence
