@@ -220,7 +220,7 @@ def reliability(check, cal):
     check = [e for e in check if e["status"] == "ok"]
     p = np.array([float(cal.probability(np.array([e["features"][k] for k in FEATURES]))) for e in check])
     y = np.array([e["truth"]["sticky"] for e in check], float)
-    w = np.where(y > 0, 0.5 / y.sum(), 0.5 / (len(y) - y.sum())) if BALANCED else np.full(len(y), 1 / len(y))
+    w = weights(y, [])  # as the fit weighs the fleet
     odds = "at even odds" if BALANCED else "as drawn"
     print("\n  reliability on the check seeds (probability decile: mean predicted, "
           f"observed sticky rate {odds}, loops)")
