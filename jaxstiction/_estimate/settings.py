@@ -175,8 +175,9 @@ class Settings(eqx.Module):
 # truth's band), and the screen left them inconclusive. With two, four of those five
 # find the true band, the screen calls 39 of P1's and P10's 40 records (seeds 0-19)
 # sticky instead of 33, and on the plant development half every sticky recording's
-# leave-one-valve-out probability rises except L74's (0.500 -> 0.495, across the
-# threshold). The second start costs 40 % more per loop: `benchmarks/fleet.py --small
+# leave-one-valve-out probability rose except L74's (0.500 -> 0.495, with the
+# probability then fitted at the records' own odds; at even odds, as now, 0.64).
+# The second start costs 40 % more per loop: `benchmarks/fleet.py --small
 # 8 --large 1024` measured 0.52 s per 1500-sample loop marginal, against 0.37 s with one.
 SCREEN_ESTIMATE = Settings(
     use_spline=False,
