@@ -27,6 +27,8 @@ from ._blocks import (
     TravelLimits as TravelLimits,
 )
 from ._checks import check_loop as check_loop, LoopDataError as LoopDataError, LoopDataWarning as LoopDataWarning
+from ._control.closedloop import Knocker as Knocker
+from ._control.controller import Controller as Controller, identify_controller as identify_controller
 from ._criteria import (
     predict_scored as predict_scored,
     score as score,
@@ -74,14 +76,13 @@ from ._screen.settings import ScreenSettings as ScreenSettings
 from ._simulate import Experiment as Experiment, LoopRecord as LoopRecord, simulate_loop as simulate_loop
 from ._verdict.settings import VerdictSettings as VerdictSettings
 from ._verdict.verdict import CAUSES as CAUSES, Verdict as Verdict, verdict as verdict
-from ._whatif.closedloop import Knocker as Knocker, LoopStats as LoopStats
 from ._whatif.compensate import Compensation as Compensation
-from ._whatif.controller import Controller as Controller, identify_controller as identify_controller
 from ._whatif.settings import (
     CompensateSettings as CompensateSettings,
     KnockerGrid as KnockerGrid,
     WhatIfSettings as WhatIfSettings,
 )
+from ._whatif.stats import LoopStats as LoopStats
 from ._whatif.trend import valve_trend as valve_trend
 from ._whatif.whatif import compensate as compensate, WhatIf as WhatIf, whatif as whatif
 

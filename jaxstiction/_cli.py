@@ -192,7 +192,7 @@ def _controller(args, ts: float):
     pi = _pi(args)
     if pi is None:
         return None
-    from ._whatif.controller import Controller
+    from ._control.controller import Controller
 
     return Controller.pi(pi[0], pi[1], ts)
 

@@ -24,6 +24,12 @@ from ._cli import (
     LONG_RECORD as LONG_RECORD,
     screen_settings as screen_settings,
 )
+from ._control.closedloop import (
+    closed_loop as closed_loop,
+    ClosedLoopRun as ClosedLoopRun,
+    SmoothKano as SmoothKano,
+    with_valve as with_valve,
+)
 from ._criteria import bic as bic, family_criteria as family_criteria, foe as foe, predicted as predicted
 from ._demo import paper_sim_case as paper_sim_case
 from ._diagnose.candidates import _quantisation as quantisation, _refit_b as refit_b
@@ -172,14 +178,6 @@ from ._verdict.verdict import (
     usable as usable,
     VERDICTS as VERDICTS,
 )
-from ._whatif.closedloop import (
-    closed_loop as closed_loop,
-    ClosedLoopRun as ClosedLoopRun,
-    count_reversals as count_reversals,
-    loop_stats as loop_stats,
-    settling_time as settling_time,
-    SmoothKano as SmoothKano,
-)
 from ._whatif.compensate import (
     design_knocker as design_knocker,
     grid_knockers as grid_knockers,
@@ -194,10 +192,10 @@ from ._whatif.refine import (
 )
 from ._whatif.replay import initial_and_sync as initial_and_sync, Replay as Replay, replay as replay
 from ._whatif.report import compensation_json as compensation_json, whatif_json as whatif_json
+from ._whatif.stats import count_reversals as count_reversals, loop_stats as loop_stats, settling_time as settling_time
 from ._whatif.uncertainty import (
     draw_models as draw_models,
     process_factor as process_factor,
     with_process as with_process,
-    with_valve as with_valve,
 )
 from ._whatif.whatif import chi2_quantile as chi2_quantile, whatif_model as whatif_model

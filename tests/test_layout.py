@@ -4,11 +4,11 @@ Read from the source with `ast` (every `import` and `from ... import`, at the
 top of a module, inside a function or under `TYPE_CHECKING`), so that a lazy
 import cannot hide a cycle. The order, lowest first:
 
-    core  <-  _io, _estimate  <-  _verdict  <-  _diagnose, _whatif  <-  _screen  <-  top
+    core  <-  _io, _estimate, _control  <-  _verdict  <-  _diagnose, _whatif  <-  _screen  <-  top
 
-A module imports from its own room or from a lower one; `_io` and `_estimate`
-do not import each other, nor do `_diagnose` and `_whatif`; the core's modules and the top's are listed, so a new
-module has to be given its place.
+A module imports from its own room or from a lower one; `_io`, `_estimate` and
+`_control` do not import each other, nor do `_diagnose` and `_whatif`; the core's
+modules and the top's are listed, so a new module has to be given its place.
 """
 
 import ast
@@ -22,7 +22,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "jaxstiction"
 
 CORE = {"_blocks", "_checks", "_criteria", "_drawing", "_filters", "_fleet", "_linalg", "_loop", "_misc", "_models",
         "_programs", "_scenarios", "_simulate", "_spline"}
-ROOMS = {"_io": 1, "_estimate": 1, "_verdict": 2, "_diagnose": 3, "_whatif": 3, "_screen": 4}
+ROOMS = {"_io": 1, "_estimate": 1, "_control": 1, "_verdict": 2, "_diagnose": 3, "_whatif": 3, "_screen": 4}
 TOP = {"__init__", "__main__", "internal", "_cli", "_demo", "_plots"}
 LEVEL = {"core": 0, **ROOMS, "top": 5}
 

@@ -27,12 +27,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from .._control.closedloop import closed_loop, ClosedLoopRun, Knocker, SmoothKano
+from .._control.controller import Controller
 from .._misc import first_min
 from .._models import LoopModel
-from .closedloop import closed_loop, ClosedLoopRun, Knocker, loop_stats, LoopStats, SmoothKano
-from .controller import Controller
 from .replay import Replay
 from .settings import CompensateSettings
+from .stats import loop_stats, LoopStats
 
 
 METHODS = ("grid", "gradient")

@@ -45,14 +45,14 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from .._control.closedloop import closed_loop, with_valve
+from .._control.controller import Controller
 from .._filters import lagged, steady_state
 from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable, solve_upper
 from .._misc import first_min, stack_trees
 from .._models import InitialState, LoopModel
-from .closedloop import closed_loop
-from .controller import Controller
 from .replay import initial_and_sync
-from .uncertainty import free_parameters, with_process, with_valve
+from .uncertainty import free_parameters, with_process
 
 
 # AR order of the refit's noise model, and samples skipped at the start (the

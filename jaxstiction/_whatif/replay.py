@@ -26,11 +26,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from .._control.controller import Controller
 from .._filters import lfilter
 from .._loop import Loop
 from .._misc import first_min
 from .._models import InitialState, LoopModel
-from .controller import Controller
 
 
 # chi-square(2) at 99 %: candidate initial states within this of the best are plausible

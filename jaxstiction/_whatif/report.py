@@ -8,9 +8,9 @@ import math
 
 import numpy as np
 
+from .._control.controller import SOURCES
 from .._misc import json_number as _r
 from .compensate import METHODS
-from .controller import SOURCES
 from .settings import WhatIfSettings
 
 

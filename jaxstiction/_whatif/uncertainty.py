@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 
-from .._blocks import Kano
+from .._control.closedloop import with_valve
 from .._filters import lfilter
 from .._linalg import _norm, householder, is_stable, solve_upper
 from .._models import InitialState, LinearProcess, LoopModel
@@ -27,11 +27,6 @@ from .._models import InitialState, LinearProcess, LoopModel
 def with_process(model: LoopModel, b, a) -> LoopModel:
     """`model` with the process polynomials `b`, `a` (delay folded into `b`)."""
     return eqx.tree_at(lambda m: m.process, model, LinearProcess(b=b, a=a))
-
-
-def with_valve(model: LoopModel, S, J) -> LoopModel:
-    """`model` with its first block (a Kano valve) set to `S`, `J`."""
-    return eqx.tree_at(lambda m: m.chain[0], model, Kano(S, J))
 
 
 def free_parameters(model: LoopModel):

@@ -27,17 +27,18 @@ import jax.random as jr
 from jaxtyping import Array, Bool, Float
 
 from .._blocks import Kano
+from .._control.closedloop import closed_loop, ClosedLoopRun, Knocker, with_valve
+from .._control.controller import Controller, identify_controller
 from .._estimate.result import LoopFit
 from .._loop import Loop
 from .._misc import stack_trees
 from .._models import LoopModel
-from .closedloop import closed_loop, ClosedLoopRun, Knocker, loop_stats, LoopStats, settling_time
 from .compensate import Compensation, design_knocker, METHODS
-from .controller import Controller, identify_controller
 from .refine import refit_for_replay
 from .replay import Replay, replay, setpoints
 from .settings import CompensateSettings, WhatIfSettings
-from .uncertainty import draw_models, free_parameters, with_valve
+from .stats import loop_stats, LoopStats, settling_time
+from .uncertainty import draw_models, free_parameters
 
 
 class WhatIf(eqx.Module):
