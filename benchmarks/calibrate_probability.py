@@ -40,6 +40,12 @@ Printed:
 - the same figures with the probability fitted on the simulated fleet alone (no
   real record seen: a pure out-of-sample check on every real record).
 
+`--limit-cycle` fits and scores with one more feature, the reproduction of the
+limit-cycle check (`jaxstiction.internal.limit_cycle`, reported in each entry but not
+weighed by the shipped probability), and `--drop horch,ngi` (any features,
+comma-separated) without those: what a feature adds, measured side by side on the
+same cached evidence.
+
 The screened evidence is cached in `benchmarks/out/`, keyed by the seeds and by
 the package's source (a changed package screens again); `--fresh` recomputes it.
 """
@@ -66,6 +72,21 @@ SHARED = HERE.parents[1] / "shared" / "data"
 ISDB_LABELS = {"CHEM1": True, "CHEM10": True, "CHEM23": True, "CHEM13": False, "PAP4": False, "PAP7": False}
 REAL_SHARE = 2 / 3  # of the total weight carried by the real records (--real-share)
 BALANCED = True  # sticky and healthy weigh the same in each part (--natural-odds: as drawn)
+COLUMNS = FEATURES  # what the probability is fitted on (--limit-cycle adds one)
+DROPPED = frozenset()  # columns taken as missing everywhere (--drop)
+
+
+def value(entry, name):
+    """Column `name` of a screen entry: a feature, or the limit-cycle check's
+    reproduction (`limit_cycle`); NaN where missing (null) or dropped."""
+    if name in DROPPED:
+        return np.nan
+    v = entry["features"][name] if name in FEATURES else entry["limit_cycle"]["reproduction"]
+    return np.nan if v is None else v
+
+
+def row(entry):
+    return np.array([value(entry, k) for k in COLUMNS], float)
 
 
 def fleet_entries(seeds, threads):
@@ -119,7 +140,7 @@ def cached(path: pathlib.Path, make, fresh: bool):
 
 
 def matrix(entries):
-    return np.array([[e["features"][k] for k in FEATURES] for e in entries], float)
+    return np.array([row(e) for e in entries], float).reshape(len(entries), len(COLUMNS))
 
 
 def weights(sim_labels, real_labels):
@@ -146,7 +167,7 @@ def fit(sim, real):
     X = np.concatenate([matrix(sim), matrix(real)]) if real else matrix(sim)
     ys = [e["truth"]["sticky"] for e in sim]
     yr = [e["label"] for e in real]
-    return fit_calibration(X, np.array(ys + yr, float), weights(ys, yr), names=FEATURES)
+    return fit_calibration(X, np.array(ys + yr, float), weights(ys, yr), names=COLUMNS)
 
 
 def called(entry, calibration, threshold=0.5):
@@ -155,7 +176,7 @@ def called(entry, calibration, threshold=0.5):
     or under setpoint moves the model-based test (`jaxstiction.internal.decide`)."""
     if entry["status"] != "ok" or entry["gate"] in HARD:
         return False
-    x = np.array([entry["features"][k] for k in FEATURES])
+    x = row(entry)
     s = js.VerdictSettings()
     by_model = (entry["gate"] == "setpoint_moves" and bool(entry.get("model_wins"))
                 and (entry.get("fitness_kano") or -np.inf) >= s.setpoint_fitness
@@ -218,7 +239,7 @@ def reliability(check, cal):
     `BALANCED` the observed rate is taken at even odds (each class's loops
     weighted by one over its count), as the probability is."""
     check = [e for e in check if e["status"] == "ok"]
-    p = np.array([float(cal.probability(np.array([e["features"][k] for k in FEATURES]))) for e in check])
+    p = np.array([float(cal.probability(row(e))) for e in check])
     y = np.array([e["truth"]["sticky"] for e in check], float)
     w = weights(y, [])  # as the fit weighs the fleet
     odds = "at even odds" if BALANCED else "as drawn"
@@ -253,7 +274,7 @@ def report_sim(check, cal):
 
 
 def main():
-    global REAL_SHARE, BALANCED
+    global REAL_SHARE, BALANCED, COLUMNS, DROPPED
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--fit-seeds", type=seeds_arg, default=seeds_arg("0-399"))
     parser.add_argument("--check-seeds", type=seeds_arg, default=seeds_arg("400-599"))
@@ -268,7 +289,21 @@ def main():
                         help="weigh every record of a part the same, not sticky and healthy half each")
     parser.add_argument("--real-share", type=float, default=REAL_SHARE,
                         help="share of the total weight carried by the real records (default 2/3)")
+    parser.add_argument("--limit-cycle", action="store_true",
+                        help="also fit on the limit-cycle check's reproduction (a measurement of what it would add)")
+    parser.add_argument("--drop", default="",
+                        help="features left out, comma-separated (taken as missing everywhere: the fit gives them "
+                             "no weight), to measure what they add")
     args = parser.parse_args()
+    dropped = [k for k in args.drop.split(",") if k]
+    if args.limit_cycle and args.write:
+        parser.error("--limit-cycle is a measurement: it cannot be combined with --write")
+    COLUMNS = FEATURES + (("limit_cycle",) if args.limit_cycle else ())
+    if set(dropped) - set(COLUMNS):
+        parser.error(f"--drop: unknown features {sorted(set(dropped) - set(COLUMNS))}; they are {COLUMNS}")
+    DROPPED = frozenset(dropped)
+    if dropped and args.write:
+        parser.error("--drop is a measurement: it cannot be combined with --write")
     if not 0 < args.real_share < 1:
         parser.error("--real-share must lie strictly between 0 and 1")
     REAL_SHARE = args.real_share
@@ -286,7 +321,7 @@ def main():
     cal = fit(sim, labelled)
     print(f"\nfitted on {len(sim)} fleet loops (seeds {seeds_text(args.fit_seeds)}) and {len(labelled)} labelled "
           f"real records ({REAL_SHARE:.0%} of the weight)")
-    for k, m, s, w in zip(FEATURES, np.asarray(cal.mean), np.asarray(cal.scale), np.asarray(cal.weights)):
+    for k, m, s, w in zip(COLUMNS, np.asarray(cal.mean), np.asarray(cal.scale), np.asarray(cal.weights)):
         print(f"  {k:20s} mean {m:8.4f} scale {s:8.4f} weight {w:8.4f}")
     print(f"  bias {float(cal.bias):.4f}")
     reliability(check, cal)
@@ -314,9 +349,10 @@ def ceiling(sim, check, real):
     from sklearn.ensemble import GradientBoostingClassifier
 
     def rows(entries):
-        return np.array([[e["features"][k] for k in FEATURES]
-                         + [e["gate_measures"][k] for k in ("setpoint_share", "compressed", "saturated")]
-                         + [e["indicators"]["periods"] or 0.0] for e in entries], float)
+        x = np.array([list(row(e))
+                      + [e["gate_measures"][k] for k in ("setpoint_share", "compressed", "saturated")]
+                      + [e["indicators"]["periods"] or 0.0] for e in entries], float)
+        return np.nan_to_num(x, nan=-1.0)  # a missing feature: below every value it takes
 
     def judged(e):
         return e["status"] == "ok" and e["gate"] not in HARD

@@ -167,6 +167,12 @@ from ._verdict.indicators import (
     shape_index as shape_index,
     stuck_share as stuck_share,
 )
+from ._verdict.limitcycle import (
+    closed_loop_stable as closed_loop_stable,
+    cycle as cycle,
+    limit_cycle as limit_cycle,
+    LimitCycle as LimitCycle,
+)
 from ._verdict.probability import Calibration as Calibration, fit_calibration as fit_calibration
 from ._verdict.verdict import (
     decide as decide,

@@ -288,6 +288,15 @@ def test_screen_entries_equal_single_fits(fleet, screened):
     assert r["stiction_detected"] == bool(v.stiction_detected)
     assert r["slip_identified"] == bool(v.slip_identified)
     assert r["evidence"] == pytest.approx(float(v.evidence), abs=1e-3)
+    # the limit-cycle check, reported (not weighed): the single call's numbers
+    lc, want = r["limit_cycle"], v.limit_cycle
+    assert lc["controller_fit"] == pytest.approx(float(want.controller_fit), abs=1e-3)
+    assert lc["stable"] == bool(want.stable)
+    if np.isfinite(float(want.reproduction)):
+        assert lc["reproduction"] == pytest.approx(float(want.reproduction), abs=2e-2)
+        assert -1.0 <= lc["reproduction"] <= 1.0
+    else:
+        assert lc["reproduction"] is None
     # the fitted delay, and a note when it is the longest tried
     assert r["delay"] == int(f.delay)
     longest = SMALL.physical.max_delay if int(f.kind) == 1 else SMALL.spline.max_delay

@@ -111,7 +111,7 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
              (f"the Kano valve leaves the linear fit's oscillation (period {float(ver.period):.0f} samples) in "
               "its residual: a disturbance from elsewhere, not the valve's cycle") if ok and bool(ver.line_persists)
              else ""]
-    ind, g = ver.indicators, ver.gate_measures
+    ind, g, lc = ver.indicators, ver.gate_measures, ver.limit_cycle
 
     def sim(v):
         # a simulation that ran away: its fitness is rounding (1e30 at one chunk size,
@@ -156,6 +156,11 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
                        "nli": _r(ind.nli, 4), "stuck_pv": _r(ind.stuck_pv), "stuck_dpv": _r(ind.stuck_dpv)},
         "crossval": [_r(v, 2) for v in np.asarray(ver.crossval)],
         "features": {k: _r(v, 4) for k, v in zip(FEATURES, np.asarray(ver.features))},
+        "limit_cycle": {"reproduction": _r(lc.reproduction), "amplitude_recorded": _r(lc.amplitude_recorded, 6),
+                        "period_recorded": _r(lc.period_recorded, 1), "amplitude_kano": _r(lc.amplitude_kano, 6),
+                        "period_kano": _r(lc.period_kano, 1), "amplitude_repaired": _r(lc.amplitude_repaired, 6),
+                        "period_repaired": _r(lc.period_repaired, 1), "controller_fit": _r(lc.controller_fit),
+                        "stable": bool(lc.stable)},
         "gate_measures": {"saturated": _r(g.saturated), "compressed": _r(g.compressed),
                           "longest_flat": _r(g.longest_flat), "setpoint_share": _r(g.setpoint_share)},
         # the Kano fit's band, which the verdict judges, whichever family `estimate`

@@ -22,7 +22,8 @@ from .._linalg import spd_solve
 class Calibration(eqx.Module):
     """Coefficients of the logistic stiction probability: `names` (static, the
     features in order), their `mean` and `scale` (standardisation) and `weights`,
-    and the `bias`. `p = 1 / (1 + exp(-(bias + weights · (x - mean) / scale)))`."""
+    and the `bias`. `p = 1 / (1 + exp(-(bias + weights · (x - mean) / scale)))`; a
+    feature that is NaN (missing: it could not be judged) is taken at its mean."""
 
     names: tuple = eqx.field(static=True)
     mean: Float[Array, " features"]
@@ -31,7 +32,7 @@ class Calibration(eqx.Module):
     bias: Float[Array, ""]
 
     def logit(self, x: Float[Array, " features"]) -> Float[Array, ""]:
-        z = (x - self.mean) / self.scale
+        z = jnp.where(jnp.isfinite(x), (x - self.mean) / self.scale, 0.0)
         return self.bias + jnp.dot(self.weights, z)
 
     def probability(self, x: Float[Array, " features"]) -> Float[Array, ""]:
@@ -41,11 +42,16 @@ class Calibration(eqx.Module):
 def fit_calibration(X, y, sample_weight=None, *, l2: float = 1.0, names: tuple = (), steps: int = 50) -> Calibration:
     """L2-penalised logistic regression (Newton's method; the bias unpenalised) of
     labels `y` (0/1) on the rows of `X`, each row weighted by `sample_weight`.
-    Features are standardised first (mean and standard deviation of `X`)."""
+    Features are standardised first (mean and standard deviation of `X`); a NaN
+    entry (a missing feature) is taken at its column's mean, as `Calibration.logit`
+    takes it."""
     X = jnp.asarray(X)
     y = jnp.asarray(y, X.dtype)
     w = jnp.ones_like(y) if sample_weight is None else jnp.asarray(sample_weight, X.dtype)
-    mean = jnp.average(X, axis=0, weights=w)
+    seen = jnp.isfinite(X)
+    ws = seen * w[:, None]
+    mean = jnp.sum(jnp.where(seen, X, 0.0) * w[:, None], axis=0) / jnp.maximum(jnp.sum(ws, axis=0), 1e-300)
+    X = jnp.where(seen, X, mean)
     scale = jnp.sqrt(jnp.average((X - mean) ** 2, axis=0, weights=w))
     scale = jnp.where(scale > 0, scale, 1.0)
     Z = jnp.concatenate([jnp.ones((X.shape[0], 1), X.dtype), (X - mean) / scale], axis=1)

@@ -32,6 +32,14 @@ valve at all.
    sinusoidal shape of OP's and PV's half-cycles (He et al. 2007); the
    bicoherence's non-Gaussianity (Choudhury et al. 2004); the share of OP's travel
    made while PV stands still (the PV–OP plot's flat tops).
+4. *The limit cycle* (`limit_cycle`), reported beside the verdict: the fitted Kano
+   model, and the same model with its valve repaired, closed again around the PI
+   identified from the record, without noise. Does the fitted valve make the
+   recorded oscillation (amplitude and period) where a repaired one would not? It
+   is not weighed in the probability: as one more feature it moved the simulated
+   fleet's check seeds by less than a point and lost a sticky plant recording left
+   out (`benchmarks/calibrate_probability.py --limit-cycle`; the results page has
+   the figures).
 
 The error is `SP − PV` when the record carries a setpoint, else `−PV`.
 
@@ -82,6 +90,7 @@ from .calibration import CALIBRATION
 from .crossval import crossval_gain
 from .gate import gate_measures, gate_reason, GateMeasures, GATES, HARD
 from .indicators import Indicators, indicators
+from .limitcycle import limit_cycle, LimitCycle
 from .probability import Calibration
 from .settings import VerdictSettings
 
@@ -109,6 +118,9 @@ class Verdict(eqx.Module):
       `crossval`: per fold, the share (%) of the linear valve's held-out k-step
       prediction error that a Kano valve removes.
     - `features`: the probability's inputs (`FEATURES`, in order).
+    - `limit_cycle`: the fitted loop closed again around the identified controller
+      (a `LimitCycle`: amplitudes, periods and the reproduction score, NaN where the
+      fit is not usable or the check cannot judge).
     - `model_wins`: the model-based test alone (see the module notes).
     - `evidence`: held-out simulation fitness gain of the Kano valve over the linear
       valve (points; trend removed, see `VerdictSettings.trend_degree`);
@@ -134,6 +146,7 @@ class Verdict(eqx.Module):
     indicators: Indicators
     crossval: Float[Array, " folds"]
     features: Float[Array, " features"]
+    limit_cycle: LimitCycle
     model_wins: Bool[Array, ""]
     evidence: Float[Array, ""]
     evidence_estimation: Float[Array, ""]
@@ -303,6 +316,8 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
     nan = jnp.asarray(jnp.nan, op.dtype)
     x = features(ind, cv, jnp.where(ok, gain, nan), jnp.where(ok, pred[0], nan), jnp.where(ok, gain_est, nan),
                  jnp.where(judged, band, nan))
+    cycle = limit_cycle(fit, op, pv, sp, loop.mask)
+    cycle = eqx.tree_at(lambda c: c.reproduction, cycle, jnp.where(ok, cycle.reproduction, nan))
     probability = calibration.probability(x)
     measures = gate_measures(op, pv, sp, loop.mask)
     code = gate(measures, ind, settings)
@@ -322,6 +337,7 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
         indicators=ind,
         crossval=cv,
         features=x,
+        limit_cycle=cycle,
         model_wins=model_wins,
         evidence=gain,
         evidence_estimation=gain_est,
