@@ -25,6 +25,7 @@ from jaxstiction.internal import (
 
 
 N = 1500
+_closed_loop, _limit_cycle = eqx.filter_jit(closed_loop), eqx.filter_jit(limit_cycle)  # compiled once here
 KP, KI = 0.05, 0.01  # the concealed cases' detuned PI
 
 
@@ -50,7 +51,7 @@ def _record(S, J, seed=0, sine=0.0, period=37, noise=0.05, kp=KP, ki=KI):
     plant = nominal_model(chain=(Kano(S, J),))
     ctrl = Controller(kp=jnp.asarray(kp), ki=jnp.asarray(ki))
     init = plant.rest_state(jnp.full((4,), 52.0))
-    run = closed_loop(plant, ctrl, jnp.zeros(n), jnp.asarray(v), init, 50.0)
+    run = _closed_loop(plant, ctrl, jnp.zeros(n), jnp.asarray(v), init, 50.0)
     cut = slice(300, None)
     nan = jnp.full((N,), jnp.nan)
     return run.op[cut], run.pv[cut], nan, jnp.ones(N)
@@ -90,7 +91,7 @@ def test_a_sticky_valve_reproduces_its_own_cycle():
     """The true model of a sticky loop makes the recorded cycle; its repaired
     valve does not."""
     op, pv, sp, mask = _record(4.0, 1.5)
-    lc = limit_cycle(_fit(4.0, 1.5), op, pv, sp, mask)
+    lc = _limit_cycle(_fit(4.0, 1.5), op, pv, sp, mask)
     assert bool(lc.stable)
     assert float(lc.controller_fit) > 0.9
     assert float(lc.reproduction) > 0.7
@@ -101,7 +102,7 @@ def test_a_band_fitted_to_an_external_oscillation_does_not():
     """A healthy valve and a sinusoid from elsewhere: a band fitted to it (wrongly)
     cycles at the loop's own period, not the sinusoid's, and the reproduction is low."""
     op, pv, sp, mask = _record(0.0, 0.0, sine=1.0, period=23)
-    lc = limit_cycle(_fit(4.0, 1.5), op, pv, sp, mask)
+    lc = _limit_cycle(_fit(4.0, 1.5), op, pv, sp, mask)
     assert abs(float(lc.period_recorded) - 23.0) < 2.0
     assert float(lc.reproduction) < 0.3
 
@@ -111,14 +112,14 @@ def test_what_cannot_be_judged_is_nan():
     # an OP that is not the controller's law (random moves): the PI is not identified
     rng = np.random.default_rng(3)
     wild = 50.0 + jnp.cumsum(jnp.asarray(rng.standard_normal(N)))
-    lc = limit_cycle(_fit(4.0, 1.5), wild, pv, sp, mask)
+    lc = _limit_cycle(_fit(4.0, 1.5), wild, pv, sp, mask)
     assert float(lc.controller_fit) < 0.2 and np.isnan(float(lc.reproduction))
     # a fitted process that the identified PI makes unstable (its gain 20 times the
     # plant's)
     fit = _fit(4.0, 1.5)
     b, a = fit.physical.process.polynomials()
     fit = eqx.tree_at(lambda f: f.physical, fit, with_process(fit.physical, 20.0 * b, a))
-    lc = limit_cycle(fit, op, pv, sp, mask)
+    lc = _limit_cycle(fit, op, pv, sp, mask)
     assert not bool(lc.stable) and np.isnan(float(lc.reproduction))
     assert float(lc.amplitude_repaired) > 10 * float(lc.amplitude_recorded)  # it ran away
 
@@ -128,7 +129,7 @@ def test_jit_equals_no_jit_and_vmap_equals_a_loop():
     fuses differently jitted, batched or not) move a slip by a sample now and then."""
     records = [_record(4.0, 1.5, seed=1), _record(0.0, 0.0, seed=2, sine=1.0, period=23)]
     fits = [_fit(4.0, 1.5), _fit(2.0, 0.5)]
-    singles = [eqx.filter_jit(limit_cycle)(f, *r) for f, r in zip(fits, records)]
+    singles = [_limit_cycle(f, *r) for f, r in zip(fits, records)]
     with jax.disable_jit():
         plain = limit_cycle(fits[0], *records[0])
     assert eqx.tree_equal(singles[0], plain, rtol=1e-2, atol=1e-6)

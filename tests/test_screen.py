@@ -522,17 +522,40 @@ def test_a_chunk_that_crashes_costs_only_the_loop_that_crashed(fleet, screened, 
     assert crashed["status"] == "fit failed: RuntimeError: RESOURCE_EXHAUSTED: out of memory while compiling"
     assert crashed["verdict"] == "inconclusive" and crashed["stiction_detected"] is False
     del want["good1"]
-    assert got == want
+    _assert_same_entries(list(got.values()), list(want.values()))
 
 
 @pytest.mark.slow
 def test_results_do_not_depend_on_the_chunk(fleet, screened):
     """One loop per batched call gives the fixture's entries at three loops per call,
     every field: the batch's size changes a loss's last bits, and the estimator's
-    choices do not see them (`first_min`)."""
+    choices do not see them (`first_min`). The limit-cycle check alone is compared
+    to a tolerance (`_assert_same_entries`)."""
     folder, _, _ = fleet
     one = js.screen(folder, dataclasses.replace(SCREEN, chunk=1)).to_json()["loops"]
-    assert one == screened.to_json()["loops"]
+    _assert_same_entries(one, screened.to_json()["loops"])
+
+
+def _assert_same_entries(got, want):
+    """Screen entries equal field by field, but for `limit_cycle`, equal to 5 %: its
+    closed-loop runs through a sticky valve cross the slip thresholds, and a last bit
+    that the batch's size changes can move a slip by a sample (as jit does,
+    `tests/test_limitcycle.py`); it is reported, never weighed, so no verdict moves."""
+    assert [e["name"] for e in got] == [e["name"] for e in want]
+    for g, w in zip(got, want):
+        g, w = dict(g), dict(w)
+        lg, lw = g.pop("limit_cycle", None), w.pop("limit_cycle", None)
+        assert g == w
+        assert (lg is None) == (lw is None)
+        if lg is None:
+            continue
+        assert lg.keys() == lw.keys() and lg["stable"] == lw["stable"]
+        for k in lg:
+            if k == "stable":
+                continue
+            assert (lg[k] is None) == (lw[k] is None), k
+            if lg[k] is not None:
+                assert lg[k] == pytest.approx(lw[k], rel=0.05, abs=0.05 if k == "reproduction" else 1e-6), k
 
 
 def test_selections_ignore_differences_in_the_last_bits():
