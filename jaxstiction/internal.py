@@ -158,6 +158,7 @@ from ._verdict.indicators import (
     autocorrelation as autocorrelation,
     bicoherence as bicoherence,
     control_error as control_error,
+    cycle as cycle,
     dominant_period as dominant_period,
     horch_phase as horch_phase,
     Indicators as Indicators,
@@ -169,7 +170,6 @@ from ._verdict.indicators import (
 )
 from ._verdict.limitcycle import (
     closed_loop_stable as closed_loop_stable,
-    cycle as cycle,
     limit_cycle as limit_cycle,
     LimitCycle as LimitCycle,
 )

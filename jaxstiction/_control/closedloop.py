@@ -85,9 +85,7 @@ class SmoothKano(AbstractBlock):
     eps: Float[Array, ""] = eqx.field(converter=_f)
 
     def init(self, u0):
-        u0 = jnp.asarray(u0)
-        one = jnp.ones_like(u0)
-        return (u0, u0, one, one, u0, jnp.zeros_like(u0))
+        return Kano.init(self, u0)  # the same state, made continuous by `step`
 
     def step(self, state, u):
         S, J, eps = self.S, self.J, self.eps

@@ -86,6 +86,18 @@ def dominant_period(e, mask, min_period: float = 4.0, min_periods: float = 3.0):
     return jnp.where(jnp.any(ok), 1.0 / jnp.maximum(f0, 1e-12), jnp.nan), jnp.clip(share, 0.0, 1.0)
 
 
+def cycle(e: Float[Array, " time"], w: Float[Array, " time"], min_periods: float = 3.0):
+    r"""`(amplitude, period)` of the oscillation in `e` over the samples with `w > 0`:
+    the period of its strongest component (`dominant_period`, at least `min_periods`
+    of them in the samples counted) and $\sqrt{2\,\text{share}}\;\sigma_e$, the
+    amplitude of the sine that carries the power within a factor 1.5 of it."""
+    period, share = dominant_period(e, w, min_periods=min_periods)
+    count = jnp.maximum(jnp.sum(w), 1.0)
+    mean = jnp.sum(w * e) / count
+    std = jnp.sqrt(jnp.sum(w * (e - mean) ** 2) / count)
+    return jnp.sqrt(2.0 * share) * std, period
+
+
 def oscillation(e: Float[Array, " time"], mask: Float[Array, " time"]):
     """`(period, regularity, share)` of the oscillation in `e`.
 

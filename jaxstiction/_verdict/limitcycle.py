@@ -44,7 +44,7 @@ from jaxtyping import Array, Bool, Float
 from .._control.closedloop import closed_loop, with_valve
 from .._control.controller import identify_controller
 from .._linalg import is_stable
-from .indicators import dominant_period
+from .indicators import cycle
 
 
 MIN_CONTROLLER_FIT = 0.2  # share of ΔOP's variance the identified PI must explain
@@ -69,18 +69,6 @@ class LimitCycle(eqx.Module):
     controller_fit: Float[Array, ""]
     stable: Bool[Array, ""]
     reproduction: Float[Array, ""]
-
-
-def cycle(e: Float[Array, " time"], w: Float[Array, " time"]):
-    r"""`(amplitude, period)` of the oscillation in `e` over the samples with `w > 0`:
-    the period of its strongest component (`dominant_period`, up to half the samples
-    counted) and $\sqrt{2\,\text{share}}\;\sigma_e$, the amplitude of the sine
-    that carries the power within a factor 1.5 of it."""
-    period, share = dominant_period(e, w, min_periods=2.0)
-    count = jnp.maximum(jnp.sum(w), 1.0)
-    mean = jnp.sum(w * e) / count
-    std = jnp.sqrt(jnp.sum(w * (e - mean) ** 2) / count)
-    return jnp.sqrt(2.0 * share) * std, period
 
 
 def _match(a, b):
@@ -111,7 +99,7 @@ def closed_loop_stable(model, controller, margin=0.0) -> Bool[Array, ""]:
 def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: Float[Array, " time"],
                 mask: Float[Array, " time"], min_controller_fit: float = MIN_CONTROLLER_FIT) -> LimitCycle:
     """The limit-cycle check of one loop (see the module notes) from its
-    [`jaxstiction.LoopFit`][] `fit` (its `physical` and `linear` models) and record:
+    [`jaxstiction.LoopFit`][] `fit` (its `physical` model and its `S`, `J`) and record:
     `op`, `pv`, `sp` (all NaN when no setpoint is recorded) and `mask` (1 on real
     samples, which come first). Pure; vmaps over loops."""
     w = (mask > 0).astype(pv.dtype)
@@ -132,7 +120,9 @@ def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: F
 
     repaired = with_valve(fit.physical, jnp.zeros_like(fit.S), jnp.zeros_like(fit.J))
     e_k, e_l, e_r = error(fit.physical), error(repaired), jnp.where(w > 0, r - pv, 0.0)
-    (a_k, p_k), (a_l, p_l), (a_r, p_r) = cycle(e_k, late), cycle(e_l, late), cycle(e_r, w)
+    # periods up to half the samples read: a slow cycle holds few in a short record
+    (a_k, p_k), (a_l, p_l), (a_r, p_r) = (cycle(e, weights, min_periods=2.0)
+                                          for e, weights in ((e_k, late), (e_l, late), (e_r, w)))
     stable = closed_loop_stable(repaired, controller)
     # a root within 1 + 1/n of the unit circle grows by at most e over the record
     slow = closed_loop_stable(repaired, controller, margin=-1.0 / count)

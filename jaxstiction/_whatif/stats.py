@@ -12,7 +12,7 @@ from jaxtyping import Array, Float
 from .._control.closedloop import closed_loop
 from .._control.controller import Controller
 from .._models import LoopModel
-from .._verdict.indicators import dominant_period
+from .._verdict.indicators import cycle
 
 
 class LoopStats(eqx.Module):
@@ -79,8 +79,7 @@ def loop_stats(pv, sp_stat, valve, mask, ts, threshold) -> LoopStats:
     e = (sp_stat - pv) * w
     e_std, e_ptp = std_ptp(e)
     pv_std, pv_ptp = std_ptp(pv)
-    period, share = dominant_period(e, w)
-    amplitude = jnp.sqrt(2.0 * share) * e_std
+    amplitude, period = cycle(e, w)
     pair = w[1:] * w[:-1]
     travel = jnp.sum(pair * jnp.abs(jnp.diff(valve))) / hours
     reversals = count_reversals(valve, w, threshold) / hours
