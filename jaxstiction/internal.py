@@ -25,7 +25,9 @@ from ._cli import (
     screen_settings as screen_settings,
 )
 from ._control.closedloop import (
+    chain_gain as chain_gain,
     closed_loop as closed_loop,
+    closed_loop_stable as closed_loop_stable,
     ClosedLoopRun as ClosedLoopRun,
     SmoothKano as SmoothKano,
     with_valve as with_valve,
@@ -169,7 +171,6 @@ from ._verdict.indicators import (
     stuck_share as stuck_share,
 )
 from ._verdict.limitcycle import (
-    closed_loop_stable as closed_loop_stable,
     limit_cycle as limit_cycle,
     LimitCycle as LimitCycle,
 )

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from jaxtyping import Array
 
-from jaxstiction import Controller, Kano, LoopModel
+from jaxstiction import Controller, Kano, LoopModel, SplineValve
 from jaxstiction.internal import (
     Calibration,
+    chain_gain,
     closed_loop,
     closed_loop_stable,
     cycle,
@@ -82,7 +83,32 @@ def test_closed_loop_stable_matches_the_roots(lag):
         char = np.pad(char, (0, n - char.size)) + np.pad(right, (0, n - right.size))
         want = bool(np.max(np.abs(np.roots(np.trim_zeros(char, "b")))) < 1.0)
         c = Controller(kp=jnp.asarray(kp), ki=jnp.asarray(ki), lag=jnp.asarray(lag))
-        assert bool(closed_loop_stable(model, c)) == want, (kp, ki)
+        assert bool(closed_loop_stable(model, c, 40.0, 60.0)) == want, (kp, ki)
+        seen.add(want)
+    assert seen == {True, False}
+
+
+def test_closed_loop_stable_counts_the_chain_after_the_valve():
+    """A fitted model's chain carries the estimator's spline after the valve, which
+    scales OP to [-1, 1]: the loop gain is the process's times the spline's slope.
+    Checked against the roots (NumPy) with B scaled by that slope, and the slope
+    against the spline's own, 2 / (hi - lo)."""
+    lo, hi = 45.0, 55.0
+    spline = SplineValve.linear(lo, hi, 8, jnp.float64)
+    model = nominal_model(chain=(Kano(0.0, 0.0), spline))
+    assert abs(float(chain_gain(model, 47.0, 52.0)) - 2.0 / (hi - lo)) < 1e-9
+    assert abs(float(chain_gain(nominal_model(chain=(Kano(0.0, 0.0),)), 47.0, 52.0)) - 1.0) < 1e-12
+    b, a = (np.asarray(x) for x in model.process.polynomials())
+    g = 2.0 / (hi - lo)
+    seen = set()
+    for kp in np.linspace(0.05, 8.0, 40):
+        char = np.convolve(a, [1.0, -1.0])
+        right = np.convolve(g * b, [kp + 0.01, -kp])
+        n = max(char.size, right.size)
+        char = np.pad(char, (0, n - char.size)) + np.pad(right, (0, n - right.size))
+        want = bool(np.max(np.abs(np.roots(np.trim_zeros(char, "b")))) < 1.0)
+        c = Controller(kp=jnp.asarray(kp), ki=jnp.asarray(0.01))
+        assert bool(closed_loop_stable(model, c, 47.0, 52.0)) == want, kp
         seen.add(want)
     assert seen == {True, False}
 

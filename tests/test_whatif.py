@@ -26,6 +26,7 @@ from jaxstiction import (
 from jaxstiction.internal import (
     chi2_quantile,
     closed_loop,
+    closed_loop_stable,
     count_reversals,
     initial_and_sync,
     nominal_model,
@@ -295,6 +296,20 @@ def test_no_setpoint_is_a_constant_setpoint():
     js = whatif_json(jax.tree.map(np.asarray, w), 2.0, SMALL)
     assert "no setpoint recorded" in js["note"]
     assert js["error_std_repaired_interval"] is not None  # NaN intervals of S and J: S and J are kept
+
+
+def test_an_unstable_repaired_loop_is_not_read():
+    """Under a PI that makes the linear loop unstable, the runs stay bounded (OP
+    clipped to its limits) and give numbers, but the repaired one would be the
+    runaway's: `stable` is false, and the JSON's numbers are null with the reason."""
+    plant, loop, _, _ = _plant_loop(6, steps=False)
+    hot = Controller(kp=jnp.asarray(2.0), ki=jnp.asarray(0.5))
+    assert not bool(closed_loop_stable(plant, hot, 40.0, 60.0))
+    w = whatif_model(plant, loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan), SMALL, controller=hot)
+    assert np.isfinite(float(w.repaired.error_std))
+    assert not bool(w.stable) and not bool(w.enough)
+    js = whatif_json(jax.tree.map(np.asarray, w), 2.0, SMALL)
+    assert js["error_std_repaired"] is None and "is unstable or runs away" in js["note"]
 
 
 @pytest.mark.slow

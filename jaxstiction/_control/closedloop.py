@@ -27,9 +27,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .._blocks import _f, AbstractBlock, Kano
+from .._linalg import is_stable
 from .._models import InitialState, LoopModel
 from .controller import Controller
 
@@ -176,3 +177,40 @@ def closed_loop(model: LoopModel, controller: Controller, sp: Float[Array, " tim
              jnp.zeros((), dtype), kstate0)
     _, (u, uv, stem, pv) = jax.lax.scan(body, carry, (jnp.arange(n), sp, disturbance))
     return ClosedLoopRun(op=u, op_valve=uv, valve=stem, pv=pv)
+
+
+def chain_gain(model: LoopModel, op_lo, op_hi) -> Float[Array, ""]:
+    """The static gain of `model`'s chain with its valve (the first block) repaired:
+    the secant of the blocks that follow it (a fitted valve characteristic, the
+    estimator's spline, which also scales OP) over the OP range `[op_lo, op_hi]`,
+    each block at rest at its input."""
+    def static(u):
+        x = u
+        for blk in tuple(model.chain)[1:]:
+            _, x = blk.step(blk.init(x), x)
+        return x
+
+    lo, hi = jnp.asarray(op_lo), jnp.asarray(op_hi)
+    width = jnp.maximum(hi - lo, 1e-6 * jnp.maximum(jnp.abs(hi), 1.0))
+    return (static(lo + width) - static(lo)) / width
+
+
+def closed_loop_stable(model: LoopModel, controller: Controller, op_lo, op_hi, margin=0.0) -> Bool[Array, ""]:
+    r"""Whether `model`'s loop with its valve repaired, closed under `controller`'s PI
+    (in velocity form, lag 0 or 1), is stable, linearised over the OP range
+    `[op_lo, op_hi]`: the roots of
+    $A(q^{-1})(1 - q^{-1}) + q^{-\ell} g B(q^{-1}) \big(k_p + k_i - k_p q^{-1}\big)$,
+    with $g$ the static gain of the blocks after the valve (`chain_gain`), inside
+    the circle of radius `1 - margin` (`is_stable`)."""
+    b, a = model.process.polynomials()
+    b = b * chain_gain(model, op_lo, op_hi).astype(b.dtype)
+    c = jnp.stack([controller.kp + controller.ki, -controller.kp]).astype(a.dtype)
+    left = jnp.convolve(a, jnp.asarray([1.0, -1.0], a.dtype))
+    right = jnp.convolve(b, c)
+    n = max(left.shape[0], right.shape[0]) + 1
+
+    def padded(x, shift):
+        return jnp.zeros((n,), a.dtype).at[shift:shift + x.shape[0]].set(x)
+
+    char = jnp.where(controller.lag == 1, padded(left, 0) + padded(right, 1), padded(left, 0) + padded(right, 0))
+    return is_stable(char, margin)

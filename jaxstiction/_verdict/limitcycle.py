@@ -41,9 +41,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .._control.closedloop import closed_loop, with_valve
+from .._control.closedloop import closed_loop, closed_loop_stable, with_valve
 from .._control.controller import identify_controller
-from .._linalg import is_stable
 from .indicators import cycle
 
 
@@ -78,24 +77,6 @@ def _match(a, b):
     return jnp.where(ok, jnp.minimum(a / b, b / a), 0.0)
 
 
-def closed_loop_stable(model, controller, margin=0.0) -> Bool[Array, ""]:
-    r"""Whether `model`'s linear process closed under `controller`'s PI (in velocity
-    form, lag 0 or 1) is stable: the roots of
-    $A(q^{-1})(1 - q^{-1}) + q^{-\ell} B(q^{-1}) \big(k_p + k_i - k_p q^{-1}\big)$
-    inside the circle of radius `1 - margin` (`is_stable`)."""
-    b, a = model.process.polynomials()
-    c = jnp.stack([controller.kp + controller.ki, -controller.kp]).astype(a.dtype)
-    left = jnp.convolve(a, jnp.asarray([1.0, -1.0], a.dtype))
-    right = jnp.convolve(b, c)
-    n = max(left.shape[0], right.shape[0]) + 1
-
-    def padded(x, shift):
-        return jnp.zeros((n,), a.dtype).at[shift:shift + x.shape[0]].set(x)
-
-    char = jnp.where(controller.lag == 1, padded(left, 0) + padded(right, 1), padded(left, 0) + padded(right, 0))
-    return is_stable(char, margin)
-
-
 def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: Float[Array, " time"],
                 mask: Float[Array, " time"], min_controller_fit: float = MIN_CONTROLLER_FIT) -> LimitCycle:
     """The limit-cycle check of one loop (see the module notes) from its
@@ -110,7 +91,8 @@ def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: F
     level = jnp.where(jnp.isfinite(controller.setpoint), controller.setpoint, jnp.sum(w * pv) / count)
     r = jnp.where(has_sp & (w > 0), jnp.where(jnp.isfinite(sp), sp, level), level)
     u0 = jnp.sum(w * op) / count
-    span = jnp.max(jnp.where(w > 0, op, -jnp.inf)) - jnp.min(jnp.where(w > 0, op, jnp.inf))
+    op_lo, op_hi = jnp.min(jnp.where(w > 0, op, jnp.inf)), jnp.max(jnp.where(w > 0, op, -jnp.inf))
+    span = op_hi - op_lo
     start = u0 + jnp.maximum(0.5 * jnp.abs(fit.S), 0.01 * span)
     late = w * (jnp.arange(op.shape[0]) >= n / 4)
     zero = jnp.zeros_like(pv)
@@ -123,9 +105,9 @@ def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: F
     # periods up to half the samples read: a slow cycle holds few in a short record
     (a_k, p_k), (a_l, p_l), (a_r, p_r) = (cycle(e, weights, min_periods=2.0)
                                           for e, weights in ((e_k, late), (e_l, late), (e_r, w)))
-    stable = closed_loop_stable(repaired, controller)
+    stable = closed_loop_stable(repaired, controller, op_lo, op_hi)
     # a root within 1 + 1/n of the unit circle grows by at most e over the record
-    slow = closed_loop_stable(repaired, controller, margin=-1.0 / count)
+    slow = closed_loop_stable(repaired, controller, op_lo, op_hi, margin=-1.0 / count)
     score = _match(a_k, a_r) * _match(p_k, p_r) - _match(a_l, a_r) * _match(p_l, p_r)
     judged = (controller.fit >= min_controller_fit) & slow & jnp.isfinite(a_k) & jnp.isfinite(a_l) & (a_r > 0)
     return LimitCycle(amplitude_recorded=a_r, period_recorded=p_r, amplitude_kano=a_k, period_kano=p_k,

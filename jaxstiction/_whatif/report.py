@@ -73,7 +73,7 @@ def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> di
     comp = knocker_json(w.knocker, ts, settings.compensate.method)
     usable = bool(np.asarray(w.enough))
     if not bool(np.asarray(w.stable)):
-        notes.append("the fitted process in closed loop with the controller runs away (an unstable loop): "
+        notes.append("the fitted process in closed loop with the controller is unstable or runs away: "
                      "the fitted model cannot be replayed")
     elif not usable:
         notes.append(f"only {int(np.asarray(w.samples))} samples are left after the valve's unknown start (sample "

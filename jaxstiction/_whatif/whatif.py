@@ -27,7 +27,7 @@ import jax.random as jr
 from jaxtyping import Array, Bool, Float
 
 from .._blocks import Kano
-from .._control.closedloop import closed_loop, ClosedLoopRun, Knocker, with_valve
+from .._control.closedloop import closed_loop, closed_loop_stable, ClosedLoopRun, Knocker, with_valve
 from .._control.controller import Controller, identify_controller
 from .._estimate.result import LoopFit
 from .._loop import Loop
@@ -59,7 +59,10 @@ class WhatIf(eqx.Module):
     - `S`, `J`: the fitted valve's; `draws_used`: drawn models kept (their runs
       stayed finite and the record does not reject them: the variance of their
       innovations is within the chi-square bound, at `level`, of the fit's);
-      `has_setpoint`; `stable`: the three fitted-loop runs stayed bounded;
+      `has_setpoint`; `stable`: the three fitted-loop runs stayed bounded and the
+      repaired loop (the fitted process, a linear valve, the controller), linearised
+      over the recorded OP range, is stable (`closed_loop_stable`, roots within
+      radius 1 + 1/n);
     - `start`: the first sample the numbers are read from, `sync` (the valve's path
       no longer depends on its unknown initial state, see `replay`) plus `settle`
       (the repaired loop's settling time, `settling_time`), or, when that leaves
@@ -306,8 +309,17 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
     big = jnp.finfo(dtype).max
     pv_range = jnp.max(jnp.where(mask > 0, pv, -big)) - jnp.min(jnp.where(mask > 0, pv, big))
     bound = 1e3 * jnp.maximum(pv_range, 1e-12)
-    stable = jnp.all(jnp.stack([jnp.all(jnp.where(mask > 0, jnp.abs(r.pv - rp.sp_stat) < bound, True))
-                                for r in (p.as_is, p.repaired, comp_run)]))
+    bounded = jnp.all(jnp.stack([jnp.all(jnp.where(mask > 0, jnp.abs(r.pv - rp.sp_stat) < bound, True))
+                                 for r in (p.as_is, p.repaired, comp_run)]))
+    # the repaired loop must also be stable as a linear loop: an unstable one may
+    # stay bounded (OP banging between its limits) and read as a number, but that
+    # number is the runaway's (concealed seed 26: a fitted gain six times the
+    # plant's, a repaired error of 717 against a true 1.35). A root within radius
+    # 1 + 1/n (growth by at most e over the record) is let pass, as the limit-cycle
+    # check does
+    op_rec = jnp.asarray(loop.op, dtype)
+    op_lo, op_hi = jnp.min(jnp.where(mask > 0, op_rec, big)), jnp.max(jnp.where(mask > 0, op_rec, -big))
+    stable = bounded & closed_loop_stable(model, ctrl, op_lo, op_hi, margin=-1.0 / jnp.maximum(jnp.sum(mask), 1.0))
     samples = jnp.sum(window)
     enough = stable & (samples >= settings.min_samples)
     return WhatIf(
