@@ -27,7 +27,9 @@ way) or neither does.
 
 It is NaN when the controller cannot be
 identified (its law explains less than `min_controller_fit` of the variance of ΔOP:
-a cascade's slave, a manual stretch), when the repaired loop under that PI has a
+a cascade's slave, a manual stretch), when the repaired loop under that PI,
+linearised over the recorded OP range (`closed_loop_stable`: the fitted spline after
+the valve scales OP, and its gain counts), has a
 closed-loop root outside the circle of radius $1 + 1/n$ ($n$ samples: it grows by
 more than a factor $e$ over the record, so the fitted process and the identified PI
 disagree with a record that stayed bounded), or when a run is not finite. A root
