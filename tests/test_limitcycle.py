@@ -67,6 +67,16 @@ def test_cycle_reads_a_sine():
         assert abs(float(p) - period) < 0.05 * period
 
 
+def _stable_by_roots(b, a, kp, ki, lag=0):
+    """Whether every root (NumPy) of A(1 - q^-1) + q^-lag B (kp + ki - kp q^-1) lies
+    inside the unit circle."""
+    char = np.convolve(a, [1.0, -1.0])
+    right = np.concatenate([np.zeros(lag), np.convolve(b, [kp + ki, -kp])])
+    n = max(char.size, right.size)
+    char = np.pad(char, (0, n - char.size)) + np.pad(right, (0, n - right.size))
+    return bool(np.max(np.abs(np.roots(np.trim_zeros(char, "b")))) < 1.0)
+
+
 @pytest.mark.parametrize("lag", [0, 1])
 def test_closed_loop_stable_matches_the_roots(lag):
     """Against the roots (NumPy) of A(1 - q^-1) + q^-lag B (kp + ki - kp q^-1), on
@@ -77,11 +87,7 @@ def test_closed_loop_stable_matches_the_roots(lag):
     seen = set()
     for _ in range(40):
         kp, ki = rng.uniform(-0.2, 1.0), rng.uniform(0.0, 0.6)
-        char = np.convolve(a, [1.0, -1.0])
-        right = np.concatenate([np.zeros(lag), np.convolve(b, [kp + ki, -kp])])
-        n = max(char.size, right.size)
-        char = np.pad(char, (0, n - char.size)) + np.pad(right, (0, n - right.size))
-        want = bool(np.max(np.abs(np.roots(np.trim_zeros(char, "b")))) < 1.0)
+        want = _stable_by_roots(b, a, kp, ki, lag)
         c = Controller(kp=jnp.asarray(kp), ki=jnp.asarray(ki), lag=jnp.asarray(lag))
         assert bool(closed_loop_stable(model, c, 40.0, 60.0)) == want, (kp, ki)
         seen.add(want)
@@ -102,11 +108,7 @@ def test_closed_loop_stable_counts_the_chain_after_the_valve():
     g = 2.0 / (hi - lo)
     seen = set()
     for kp in np.linspace(0.05, 8.0, 40):
-        char = np.convolve(a, [1.0, -1.0])
-        right = np.convolve(g * b, [kp + 0.01, -kp])
-        n = max(char.size, right.size)
-        char = np.pad(char, (0, n - char.size)) + np.pad(right, (0, n - right.size))
-        want = bool(np.max(np.abs(np.roots(np.trim_zeros(char, "b")))) < 1.0)
+        want = _stable_by_roots(g * b, a, kp, 0.01)
         c = Controller(kp=jnp.asarray(kp), ki=jnp.asarray(0.01))
         assert bool(closed_loop_stable(model, c, 47.0, 52.0)) == want, kp
         seen.add(want)

@@ -313,7 +313,7 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
                                  for r in (p.as_is, p.repaired, comp_run)]))
     # the repaired loop must also be stable as a linear loop: an unstable one may
     # stay bounded (OP banging between its limits) and read as a number, but that
-    # number is the runaway's (concealed seed 26: a fitted gain six times the
+    # number is the runaway's (concealed seed 26: a fitted gain 1.8 times the
     # plant's, a repaired error of 717 against a true 1.35). A root within radius
     # 1 + 1/n (growth by at most e over the record) is let pass, as the limit-cycle
     # check does
