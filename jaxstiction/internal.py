@@ -193,6 +193,7 @@ from ._whatif.compensate import (
 from ._whatif.refine import (
     ar_residual as ar_residual,
     arx_criterion as arx_criterion,
+    arx_starts as arx_starts,
     polish_valve as polish_valve,
     refine_process as refine_process,
     refit_for_replay as refit_for_replay,

@@ -18,6 +18,7 @@ from jaxstiction._whatif.replay import setpoints
 from jaxstiction.internal import (
     ar_residual,
     arx_criterion,
+    arx_starts,
     initial_and_sync,
     polish_valve,
     refine_process,
@@ -226,6 +227,77 @@ def test_refine_recovers_the_process_from_a_wrong_start():
     at_plant, _, _ = _refit(plant, loop)
     for got, want in zip(at_plant.process.polynomials(), plant.process.polynomials()):
         np.testing.assert_allclose(np.asarray(got)[:3], np.asarray(want)[:3], atol=0.1)
+
+
+def _reference_starts(x, pv, weights, b0, a0, shifts, order):
+    """`arx_starts` row by row with numpy's lstsq and scipy's lfilter."""
+    from scipy.signal import lfilter as sp_lfilter
+
+    n, nb, na = len(pv), len(b0), len(a0) - 1
+
+    def rows(lags):
+        return [t for t in range(lags, n) if all(weights[t - k] > 0 for k in range(lags + 1))]
+
+    r = rows(order)
+    X = np.array([[1.0] + [pv[t - k] for k in range(1, order + 1)] + [x[t - k] for k in range(1, order + 1)]
+                  for t in r])
+    th, *_ = np.linalg.lstsq(X, pv[r], rcond=None)
+    u = x - x[0]
+    y = sp_lfilter(np.r_[0.0, th[order + 1:]], np.r_[1.0, -th[1:order + 1]], u)
+    r = rows(max(nb, na))
+    out = []
+    for k in shifts:
+        support = np.roll(b0 != 0, k)
+        lags = [j for j in range(nb) if support[j]]
+        Z = np.array([[1.0] + [-y[t - i] for i in range(1, na + 1)] + [u[t - j] for j in lags] for t in r])
+        c, *_ = np.linalg.lstsq(Z, y[r], rcond=None)
+        b = np.zeros(nb)
+        b[lags] = c[na + 1:]
+        out.append((b, np.r_[1.0, c[1:na + 1]]))
+    return out
+
+
+def test_arx_starts_match_a_plain_least_squares():
+    """The ARX and the equation-error fits of each shifted structure, against numpy
+    and scipy row by row; a shift that pushes B out of its array is not valid."""
+    plant, loop, _, _ = _plant_loop(3)
+    b, a = plant.process.polynomials()
+    model = with_process(plant, jnp.concatenate([b, jnp.zeros(2)]), a)  # b = [0, 1, 0.5, 0, 0]
+    op, pv, w, initial = _prepared(model, loop)
+    w = w.at[200:210].set(0.0)  # a gap: rows whose lags fall in it are left out too
+    x = model.valve_path(op, initial)
+    shifts = (-2, -1, 0, 1, 2)
+    starts, valid = arx_starts(model, x, pv, w, shifts, order=6)
+    assert np.asarray(valid).tolist() == [False, False, True, True, True]  # B stays strictly proper
+    want = _reference_starts(np.asarray(x), np.asarray(pv), np.asarray(w), np.asarray(model.process.polynomials()[0]),
+                             np.asarray(a), shifts, 6)
+    got_b, got_a = (np.asarray(p) for p in jax.vmap(lambda m: m.process.polynomials())(starts))
+    for i in range(2, 5):
+        np.testing.assert_allclose(got_b[i], want[i][0], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(got_a[i][:3], want[i][1], rtol=1e-6, atol=1e-9)
+        assert not np.any(got_a[i][3:])  # A's padding stays fixed at 0
+    # at the plant's dead time the start is the plant, to the precision the noisy
+    # closed-loop record allows
+    np.testing.assert_allclose(got_a[2][:3], [1.0, -1.5, 0.7], atol=0.1)
+    np.testing.assert_allclose(got_b[2][1:3], [1.0, 0.5], atol=0.25)
+
+
+def test_refit_for_replay_recovers_a_gain_the_fit_lost():
+    """A fit whose process lost A's resonance and 70 % of its gain, with a dead time
+    a sample too long besides: the refits started from it stay near its gain (2.1
+    for the plant's 7.5); the start from the ARX, with its own initial valve state,
+    gives the replay a model within a quarter of the plant's gain (500 samples, and
+    the polished J 2.1 for the valve's 1.5: the plant's process refitted at that
+    valve has 5.4)."""
+    plant, loop, _, _ = _plant_loop(3, S=4.0, J=1.5)
+    b, a = plant.process.polynomials()
+    b = jnp.concatenate([b, jnp.zeros(2)])
+    wrong = with_process(plant, jnp.roll(b, 1) * 0.3, jnp.asarray([1.0, -0.8, 0.1]))
+    gain = float(jnp.sum(b) / jnp.sum(a))
+    ready = _ready(wrong, loop, PI)
+    b_r, a_r = ready.process.polynomials()
+    assert float(jnp.sum(b_r) / jnp.sum(a_r)) == pytest.approx(gain, rel=0.3)
+    assert np.asarray(b_r)[0] == 0 and abs(float(b_r[1])) > 0.5
 
 
 def test_refine_vmap_equals_single_calls():

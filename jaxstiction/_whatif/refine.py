@@ -25,7 +25,15 @@ match. S and J are searched on a fine grid around the fit, one coordinate at a t
 by the residual of a high-order ARX model of PV on its own past and the valve path
 (no process model is assumed; PV's own regressors are factored once for the whole
 grid, `arx_criteria`), and the process is then refitted at the fitted dead
-time and one sample either side (`refit_for_replay`). Of these refits and the one
+time and one sample either side (`refit_for_replay`).
+
+The refit is a local search, and a fit's process can sit in another basin: on
+tight concealed loops, a static gain half the plant's with the valve right, while
+the criterion is lower at the plant. So the process is also refitted from starts
+that do not hang on the fit (`arx_starts`): a high-order ARX of PV on its past and
+the polished valve path, simulated without noise, then the fit's structure fitted
+to that output by equation error at its dead time and up to two samples either
+side; each start gets its own initial valve state. Of all these refits and the one
 without the polish, the least criterion is kept, among those whose repaired replay
 (a cheap one, from the refit's own start, with the loop's PI) keeps its error within
 `RUNAWAY_FACTOR` of the record's. A polished valve
@@ -47,8 +55,8 @@ import optimistix as optx
 
 from .._control.closedloop import closed_loop, with_valve
 from .._control.controller import Controller
-from .._filters import lagged, steady_state
-from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable, solve_upper
+from .._filters import lagged, lfilter, steady_state
+from .._linalg import apply_q, apply_qt, householder, HouseholderQR, is_stable, lstsq, solve_upper
 from .._misc import first_min, stack_trees
 from .._models import InitialState, LoopModel
 from .replay import initial_and_sync
@@ -212,6 +220,43 @@ def _shifted(model: LoopModel, k: int):
     return with_process(model, jnp.roll(b, k), a), valid
 
 
+def arx_starts(model: LoopModel, x, pv, weights, shifts=(-2, -1, 0, 1, 2), *, order: int = AR_ORDER):
+    """`(models, valid)`: starts for `refine_process` that do not hang on the fit's
+    process. A high-order ARX of PV on its own past and the valve path `x` (order
+    `order`, a level, by QR over `weights`) is simulated without noise from `x`;
+    the fit's process structure, its dead time moved by each of `shifts`, is fitted
+    to that noise-free output by equation error (least squares, QR). `valid`: the
+    shifted structure fits in B's array, and the ARX and the start are stable. Pure
+    and vmappable; stacked along a leading axis of `len(shifts)`."""
+    dtype = pv.dtype
+    b0, a0 = model.process.polynomials()
+    nb, na = b0.shape[0], a0.shape[0] - 1
+    w = _ar_weights(weights, order)
+    X = jnp.concatenate([jnp.ones_like(pv)[:, None], lagged(pv, order), lagged(x, order)], axis=1)
+    th = lstsq(X * w[:, None], pv * w)
+    A = jnp.concatenate([jnp.ones((1,), dtype), -th[1:order + 1]])
+    B = jnp.concatenate([jnp.zeros((1,), dtype), th[order + 1:]])
+    u = x - x[0]
+    y = lfilter(B, A, u)
+    arx_ok = is_stable(A, margin=-1e-3) & jnp.all(jnp.isfinite(y))
+    y = jnp.where(arx_ok, y, 0.0)
+    ww = _ar_weights(weights, max(nb, na))
+    ys = lagged(y, na) * (a0[1:] != 0)[None, :]
+    xs = jnp.concatenate([u[:, None], lagged(u, nb - 1)], axis=1)
+    starts, valid = [], []
+    for k in shifts:
+        shifted, fits = _shifted(model, k)
+        support = shifted.process.polynomials()[0] != 0
+        Z = jnp.concatenate([jnp.ones_like(y)[:, None], -ys, xs * support[None, :]], axis=1)
+        c = lstsq(Z * ww[:, None], y * ww)
+        a = jnp.concatenate([jnp.ones((1,), dtype), c[1:na + 1]])
+        b = c[na + 1:] * support
+        ok = fits & arx_ok & is_stable(a, margin=-1e-3) & jnp.all(jnp.isfinite(c))
+        starts.append(with_process(model, jnp.where(ok, b, b0), jnp.where(ok, a, a0)))
+        valid.append(ok)
+    return stack_trees(*starts), jnp.stack(valid)
+
+
 def refine_process(model: LoopModel, op, pv, mask, initial: InitialState, *, order: int = AR_ORDER,
                    max_steps: int = 40):
     """`(model, refined, result, loss)`: `model` with its process refitted (see the
@@ -296,8 +341,9 @@ def _error_std(pv, sp, weights):
 def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_sim, sp_stat, init_count: int, *,
                      polish: bool = True) -> LoopModel:
     """`model` made ready for the replay (see the module notes): its process refitted
-    on the fit's valve path and, with `polish`, also on the polished valve's path at
-    the fitted dead time and one sample either side. With `polish`, the least
+    on the fit's valve path and, with `polish`, also on the polished valve's path,
+    from the fit's process at the fitted dead time and one sample either side and
+    from `arx_starts`. With `polish`, the least
     criterion is kept (the earlier candidate on a tie) among the refits whose loop
     repaired under `controller` (setpoint `sp_sim`, error read against `sp_stat`: see
     `setpoints`) does not run away; without it, the one refit is. Pure and
@@ -310,14 +356,22 @@ def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_
     polished = polish_valve(model, op, pv, mask, initial)
     start, _ = initial_and_sync(polished, op, pv, mask, init_count)
     shifted = [_shifted(polished, k) for k in (0, -1, 1)]
-    shifted_models = stack_trees(*[m for m, _ in shifted])
-    outs, _, _, losses = jax.vmap(lambda m: refine_process(m, op, pv, mask, start))(shifted_models)
-    # the four candidates: the fit's valve, then the polished one at three dead times
-    models = jax.tree.map(lambda p, o: jnp.concatenate([p[None], o]), plain, outs)
-    starts = stack_trees(initial, start, start, start)
-    losses = jnp.concatenate([loss[None], losses])
-    valid = jnp.stack([jnp.asarray(True)] + [v for _, v in shifted])
     w = (mask > 0).astype(op.dtype) * (jnp.arange(op.shape[0]) >= SKIP)
+    from_arx, arx_valid = arx_starts(polished, polished.valve_path(op, start), pv, w)
+    # an ARX start can be far from the polished process, whose best initial valve
+    # state need not be its own
+    arx_initial = jax.vmap(lambda m: initial_and_sync(m, op, pv, mask, init_count)[0])(from_arx)
+    candidates = jax.tree.map(lambda s, a: jnp.concatenate([s, a]), stack_trees(*[m for m, _ in shifted]), from_arx)
+    n_shifted = len(shifted)
+    starts = jax.tree.map(lambda i, s, a: jnp.concatenate([i[None], jnp.broadcast_to(s, (n_shifted,) + s.shape), a]),
+                          initial, start, arx_initial)
+    outs, _, _, losses = jax.vmap(lambda m, i0: refine_process(m, op, pv, mask, i0))(
+        candidates, jax.tree.map(lambda t: t[1:], starts))
+    # the candidates: the fit's valve, then the polished one at three dead times
+    # from the fit's process and at five from the ARX's
+    models = jax.tree.map(lambda p, o: jnp.concatenate([p[None], o]), plain, outs)
+    losses = jnp.concatenate([loss[None], losses])
+    valid = jnp.concatenate([jnp.stack([jnp.asarray(True)] + [v for _, v in shifted]), arx_valid])
     recorded = _error_std(pv, sp_stat, w)
     repaired = jax.vmap(lambda m, i0: _repaired_error(m, op, pv, w, sp_sim, sp_stat, controller, i0))(models, starts)
     ok = valid & jnp.isfinite(losses) & ~(repaired > RUNAWAY_FACTOR * recorded)
