@@ -287,6 +287,46 @@ def test_compensate_vmap_equals_single_calls():
         assert float(one.error_std_compensated) <= float(one.error_std_as_is)
 
 
+def test_knocker_design_is_the_worst_over_the_valve_neighbours():
+    """The chosen knocker's objective is the worst, over the fitted valve and its four
+    neighbours (S ± 3 %, J ± 10 % of S), of its objective against each one's own run
+    without a knocker (a plain loop of closed-loop runs as reference), and the least
+    over the grid; a grid of knockers that all hurt gives no knocker."""
+    from jaxstiction._whatif.compensate import design_knocker
+    from jaxstiction._whatif.stats import loop_stats
+    from jaxstiction._whatif.whatif import _prepare
+    from jaxstiction.internal import with_valve
+
+    plant, loop, _, _ = _plant_loop(3)
+    ctrl = Controller(kp=jnp.asarray(KP), ki=jnp.asarray(KI))
+    p = _prepare(plant, loop, ctrl, 8, SMALL.reversal_threshold, SMALL.min_samples)
+    settings = SMALL.compensate
+    d = design_knocker(plant, ctrl, p.replay, p.window, p.ts, p.as_is_stats, settings, SMALL.reversal_threshold)
+    rp = p.replay
+
+    def stats(model, knocker):
+        run = closed_loop(model, ctrl, rp.sp_sim, rp.disturbance, rp.initial, rp.op0, knocker)
+        return loop_stats(run.pv, rp.sp_stat, run.valve, p.window, p.ts, SMALL.reversal_threshold)
+
+    none = Knocker(amplitude=0.0, width=1.0, period=2)
+    worst = 0.0
+    for S, J in ((4.0, 1.5), (3.88, 1.5), (4.12, 1.5), (4.0, 1.1), (4.0, 1.9)):
+        m = with_valve(plant, jnp.asarray(S), jnp.asarray(J))
+        k, n = stats(m, d.knocker), stats(m, none)
+        obj = float(k.error_std / n.error_std + settings.travel_weight * k.travel / n.travel)
+        worst = max(worst, obj)
+    assert float(d.knocker.amplitude) > 0
+    assert float(d.objective) == pytest.approx(worst, rel=1e-9)
+    assert float(d.objective) == pytest.approx(float(jnp.min(d.grid_objective)), rel=1e-12)
+    assert float(d.objective) < 1 + settings.travel_weight
+    # pulses of three bands hurt every neighbour: no knocker, and the as-is run
+    hurts = CompensateSettings(grid=KnockerGrid(amplitudes=(3.0,), widths=(1,), periods=(2,)))
+    d = design_knocker(plant, ctrl, p.replay, p.window, p.ts, p.as_is_stats, hurts, SMALL.reversal_threshold)
+    assert float(d.knocker.amplitude) == 0 and float(d.objective) == pytest.approx(1 + hurts.travel_weight)
+    assert float(d.compensated.error_std) == pytest.approx(float(p.as_is_stats.error_std), rel=1e-12)
+    assert float(d.grid_objective[0]) > 1 + hurts.travel_weight
+
+
 def test_no_setpoint_is_a_constant_setpoint():
     plant, loop, _, _ = _plant_loop(6, steps=False, sp_recorded=False)
     w = whatif_model(plant, loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan), SMALL)
@@ -367,7 +407,8 @@ def test_bad_input_is_one_line():
                         (lambda: whatif_model(nominal_model(), loop, None, None), "Kano valve"),
                         (lambda: WhatIfSettings(level=1.5), "level"),
                         (lambda: KnockerGrid(widths=(0,)), "widths"),
-                        (lambda: CompensateSettings(method="newton"), "method")):
+                        (lambda: CompensateSettings(method="newton"), "method"),
+                        (lambda: CompensateSettings(robust_S=1.5), "robust_S")):
         with pytest.raises(ValueError, match=match) as info:
             call()
         assert "\n" not in str(info.value)

@@ -27,9 +27,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from .._control.closedloop import closed_loop, ClosedLoopRun, Knocker, SmoothKano
+from .._control.closedloop import closed_loop, ClosedLoopRun, Knocker, SmoothKano, with_valve
 from .._control.controller import Controller
-from .._misc import first_min
+from .._misc import first_min, stack_trees
 from .._models import LoopModel
 from .replay import Replay
 from .settings import CompensateSettings
@@ -81,10 +81,28 @@ def grid_knockers(S, J, settings: CompensateSettings) -> Knocker:
     return Knocker(amplitude=fa * scale, width=width, period=period)
 
 
+def no_knock(dtype) -> Knocker:
+    """The knocker that does nothing (amplitude 0)."""
+    return Knocker(amplitude=jnp.zeros((), dtype), width=jnp.ones((), dtype), period=jnp.asarray(2, jnp.int32))
+
+
+def valve_neighbours(model: LoopModel, settings: CompensateSettings) -> LoopModel:
+    """`model` with its Kano valve as fitted, then at S × (1 ∓ `robust_S`) and at
+    J ∓ `robust_J` × S (J within [0, S]): five models stacked along a leading axis."""
+    S, J = model.chain[0].S, model.chain[0].J
+    dS, dJ = settings.robust_S * S, settings.robust_J * S
+    pairs = [(S, J), (S - dS, J), (S + dS, J), (S, J - dJ), (S, J + dJ)]
+    return stack_trees(*[with_valve(model, s, jnp.clip(j, 0.0, s)) for s, j in pairs])
+
+
 def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, ts, base: LoopStats,
                    settings: CompensateSettings, threshold: float) -> Design:
     """The knocker for `model` (a Kano valve first) in closed loop with `controller`
-    under the replay `rp`; `base`: the as-is run's stats (the objective's scale)."""
+    under the replay `rp`; `base`: the as-is run's stats (the objective's scale on
+    the fitted valve). Each candidate is scored by its worst objective over the
+    fitted valve and its neighbours (`valve_neighbours`), each against its own run
+    without a knocker; no knocker (objective 1 + w) is chosen when no candidate
+    beats it."""
     S, J = model.chain[0].S, model.chain[0].J
     w = settings.travel_weight
 
@@ -95,14 +113,24 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
         ks = grid_knockers(S, J, settings)
     else:
         ks = gradient_knockers(model, controller, rp, mask, ts, base, settings)
+    none = no_knock(jnp.result_type(S))
+    # no knocker first, so that a tie keeps it
+    ks = jax.tree.map(lambda n, k: jnp.concatenate([jnp.broadcast_to(n, (1,) + n.shape), k]), none, ks)
     runs = _runs(model, controller, rp, ks)
     st = jax.vmap(stats)(runs)
-    obj = _objective(st, base, w)
-    i = first_min(obj)
+    obj = _objective(st, jax.tree.map(lambda t: t[0], st), w)
+
+    def worst_neighbour(m):
+        nst = jax.vmap(stats)(_runs(m, controller, rp, ks))
+        return _objective(nst, jax.tree.map(lambda t: t[0], nst), w)
+
+    others = jax.tree.map(lambda t: t[1:], valve_neighbours(model, settings))
+    robust = jnp.maximum(obj, jnp.max(jax.vmap(worst_neighbour)(others), axis=0))
+    i = first_min(robust)
     pick = lambda t: t[i]  # noqa: E731
     knocker = jax.tree.map(pick, ks)
-    return Design(knocker=knocker, objective=obj[i], grid_objective=obj, compensated=jax.tree.map(pick, st),
-                  run=jax.tree.map(pick, runs))
+    return Design(knocker=knocker, objective=robust[i], grid_objective=robust[1:],
+                  compensated=jax.tree.map(pick, st), run=jax.tree.map(pick, runs))
 
 
 def gradient_knockers(model: LoopModel, controller: Controller, rp: Replay, mask, ts, base: LoopStats,

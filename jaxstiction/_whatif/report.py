@@ -49,6 +49,8 @@ def _stats(s, i=None) -> dict:
                                              "travel", "reversals")}
 
 
+NO_KNOCKER = ("no knocker of the grid reduces the variability of this loop at the fitted valve and at its "
+              "neighbours (CompensateSettings.robust_S, robust_J): none is recommended")
 PARKED = ("the knocker's predicted gain comes from a valve that stays parked at one position (travel {travel:.3g} "
           "against {travel0:.3g} % of span per hour as is): it holds only while the load does not move the balance "
           "point, so treat it as optimistic")
@@ -106,8 +108,7 @@ def whatif_json(w, ts: float, settings: WhatIfSettings = WhatIfSettings()) -> di
                      f"({rec['error_std']:.4g}): the identified controller does not reproduce the loop")
     removable = a["error_std"] - r["error_std"]
     if usable and c["error_std"] >= a["error_std"]:
-        notes.append("no knocker of the grid reduces the variability of this loop: the compensator is the "
-                     "grid's best, and it does not help")
+        notes.append(NO_KNOCKER)
     elif usable and _parked(float(c["travel"]), float(a["travel"])):
         notes.append(PARKED.format(travel=float(c["travel"]), travel0=float(a["travel"])))
 
@@ -167,7 +168,7 @@ def compensation_json(c, ts: float) -> dict:
     a, k, r = _f(c.error_std_as_is), _f(c.error_std_compensated), _f(c.error_std_repaired)
     notes = []
     if k >= a:
-        notes.append("no knocker of the grid reduces the variability of this loop")
+        notes.append(NO_KNOCKER)
     elif _parked(_f(c.travel_compensated), _f(c.travel_as_is)):
         notes.append(PARKED.format(travel=_f(c.travel_compensated), travel0=_f(c.travel_as_is)))
     if a - r <= 0:

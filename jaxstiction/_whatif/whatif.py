@@ -33,7 +33,7 @@ from .._estimate.result import LoopFit
 from .._loop import Loop
 from .._misc import stack_trees
 from .._models import LoopModel
-from .compensate import Compensation, design_knocker, METHODS
+from .compensate import Compensation, design_knocker, METHODS, no_knock
 from .refine import refit_for_replay
 from .replay import Replay, replay, setpoints
 from .settings import CompensateSettings, WhatIfSettings
@@ -126,10 +126,6 @@ class _Prepared(eqx.Module):
     repaired_stats: LoopStats
 
 
-def _no_knock(dtype) -> Knocker:
-    return Knocker(amplitude=jnp.zeros((), dtype), width=jnp.ones((), dtype), period=jnp.asarray(2, jnp.int32))
-
-
 def _runs3(models, controller: Controller, rp: Replay, knockers: Knocker) -> ClosedLoopRun:
     """Closed-loop runs of a batch of models, each with its own knocker."""
     return jax.vmap(lambda m, k: closed_loop(m, controller, rp.sp_sim, rp.disturbance, rp.initial, rp.op0, k))(
@@ -169,7 +165,7 @@ def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_c
     start = jnp.minimum(rp.sync + settle, jnp.maximum(rp.sync, last - min_samples))
     start = jnp.minimum(start, n)
     window = mask * (jnp.arange(n) >= start)
-    none = _no_knock(dtype)
+    none = no_knock(dtype)
     runs = _runs3(stack_trees(model, repaired_model), controller, rp, stack_trees(none, none))
     stats = jax.vmap(lambda r: loop_stats(r.pv, rp.sp_stat, r.valve, window, ts, threshold))(runs)
     first, second = (jax.tree.map(lambda t, i=i: t[i], (runs, stats)) for i in (0, 1))
@@ -263,7 +259,7 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
 
     # draws: each model replays the record with its own disturbance
     K = settings.draws
-    none = _no_knock(dtype)
+    none = no_knock(dtype)
     if K > 0:
         op = jnp.asarray(loop.op, dtype)
         models = draw_models(model, jnp.asarray(S_interval, dtype), jnp.asarray(J_interval, dtype), op,
