@@ -9,7 +9,11 @@ fitted loop replayed under the disturbance it met (see `replay`), minimising
 $$\frac{\sigma_e(a, \tau, h)}{\sigma_{e,\text{as is}}} + w\,\frac{T(a, \tau, h)}{T_\text{as is}},$$
 
 $\sigma_e$ the standard deviation of SP − PV and $T$ the valve travel (wear is the
-knocker's price; $w$ = `CompensateSettings.travel_weight`). Two ways:
+knocker's price; $w$ = `CompensateSettings.travel_weight`). A knocker's effect hangs
+on the band to a few percent, so each candidate is scored by its worst objective over
+the fitted valve and four neighbours (`valve_neighbours`), each against its own run
+without a knocker, and none is chosen when no candidate beats doing nothing.
+The candidates come two ways:
 
 - `"grid"` (default): every point of a [`jaxstiction.KnockerGrid`][] simulated with the
   fitted Kano valve, all at once in one vmapped closed-loop run;
@@ -120,12 +124,12 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
     st = jax.vmap(stats)(runs)
     obj = _objective(st, jax.tree.map(lambda t: t[0], st), w)
 
-    def worst_neighbour(m):
+    def on_neighbour(m):
         nst = jax.vmap(stats)(_runs(m, controller, rp, ks))
         return _objective(nst, jax.tree.map(lambda t: t[0], nst), w)
 
     others = jax.tree.map(lambda t: t[1:], valve_neighbours(model, settings))
-    robust = jnp.maximum(obj, jnp.max(jax.vmap(worst_neighbour)(others), axis=0))
+    robust = jnp.maximum(obj, jnp.max(jax.vmap(on_neighbour)(others), axis=0))
     i = first_min(robust)
     pick = lambda t: t[i]  # noqa: E731
     knocker = jax.tree.map(pick, ks)
@@ -212,7 +216,8 @@ class Compensation(eqx.Module):
       reduction as a percentage of the as-is variability;
     - `travel_as_is`, `travel_compensated`, `travel_repaired` (% of span per hour),
       `reversals_as_is`, `reversals_compensated`, `reversals_repaired` (per hour);
-    - `objective`: the design objective reached; `grid_objective`: every point's;
+    - `objective`: the design objective reached (the worst over the fitted valve and
+      its neighbours); `grid_objective`: every point's;
     - `pv_as_is`, `pv_compensated`, `pv_repaired`, `op_compensated`: the runs.
     """
 
