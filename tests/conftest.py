@@ -1,7 +1,7 @@
 import os
 import pathlib
 
-from jaxstiction.internal import cache_folder, lean_compiler, xla_cache
+from jaxstiction.internal import cache_folder, lean_compiler, release_programs_near_map_limit, xla_cache
 
 
 # The command line's compiler flag (XLA's older CPU fusion code generator: under half
@@ -55,3 +55,17 @@ def isdb():
     if not (ISDB / "CHEM23.csv").exists():
         pytest.skip("ISDB data folder ../shared/data/isdb is absent")
     return ISDB
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    """Every compiled XLA CPU program keeps its own memory maps, and a worker that runs
+    many test files accumulates them: past the kernel's limit (`vm.max_map_count`,
+    65530 by default) LLVM fails mid-compilation: a cold run of the suite lost one
+    worker to a segmentation fault in compilation while the other, holding 42,000
+    maps, hung. After each test the
+    compiled programs are cleared when the process holds more than half the limit
+    (`release_programs_near_map_limit`); the cost is recompiling what a later test
+    uses again."""
+    yield
+    release_programs_near_map_limit()
