@@ -91,11 +91,11 @@ def no_knock(dtype) -> Knocker:
 
 
 def valve_neighbours(model: LoopModel, settings: CompensateSettings) -> LoopModel:
-    """`model` with its Kano valve as fitted, then at S × (1 ∓ `robust_S`) and at
-    J ∓ `robust_J` × S (J within [0, S]): five models stacked along a leading axis."""
+    """`model` with its Kano valve at S × (1 ∓ `robust_S`) and at J ∓ `robust_J` × S
+    (J within [0, S]): four models stacked along a leading axis."""
     S, J = model.chain[0].S, model.chain[0].J
     dS, dJ = settings.robust_S * S, settings.robust_J * S
-    pairs = [(S, J), (S - dS, J), (S + dS, J), (S, J - dJ), (S, J + dJ)]
+    pairs = [(S - dS, J), (S + dS, J), (S, J - dJ), (S, J + dJ)]
     return stack_trees(*[with_valve(model, s, jnp.clip(j, 0.0, s)) for s, j in pairs])
 
 
@@ -128,8 +128,7 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
         nst = jax.vmap(stats)(_runs(m, controller, rp, ks))
         return _objective(nst, jax.tree.map(lambda t: t[0], nst), w)
 
-    others = jax.tree.map(lambda t: t[1:], valve_neighbours(model, settings))
-    robust = jnp.maximum(obj, jnp.max(jax.vmap(on_neighbour)(others), axis=0))
+    robust = jnp.maximum(obj, jnp.max(jax.vmap(on_neighbour)(valve_neighbours(model, settings)), axis=0))
     i = first_min(robust)
     pick = lambda t: t[i]  # noqa: E731
     knocker = jax.tree.map(pick, ks)
