@@ -48,7 +48,8 @@ class Design(eqx.Module):
 
     - `knocker`: the chosen [`jaxstiction.Knocker`][] (exact pulses);
     - `objective`: its design objective (see the module notes; 1 + w for no knocker);
-    - `grid_objective`: the objective of every grid point (NaN where not simulated;
+    - `grid_objective`: the objective of every candidate, the worst over the fitted
+      valve and its neighbours (`inf` where a run is not finite;
       `method="gradient"`: the gradient results' exact objectives);
     - `compensated`: [`LoopStats`] of the compensated run; `run`: the run itself.
     """
