@@ -27,6 +27,9 @@ REJECTION_RULES = {
     "gain_over_level": "an input block whose held-out gain is the refitted PV level's (`_gain_from_the_block`)",
     "gain_over_linear_under_drift": "with a drift significant, an input block that beats the linear valve refitted "
                                     "the same way by nothing held out (`_gain_from_the_block`)",
+    "k_step_gain_under_drift": "with a drift significant, an input block that predicts k steps ahead no better "
+                               "than the refitted linear valve, both under the drift's noise model held out "
+                               "(`_gain_from_the_block`)",
     "stiction_vs_deadband": "stiction and deadband both proven: the slip J decides which one stands",
     "alternative": "proven on its own, but an alternative to the verdict's block (never fitted together with it)",
     "joint_gain_over_linear": "joint fit (no nominal): no held-out gain over its own linear valve",
