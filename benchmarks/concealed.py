@@ -29,13 +29,18 @@ against):
 - valve_characteristic: equal-percentage R 3-50 (log-uniform), three in four
   calibrated at the operating point (unit slope there: only the curvature differs),
   the rest P3-like (the nominal's linear valve passes OP unchanged, so the
-  operating point moves); size R;
+  operating point moves); size the largest error of the nominal's valve position
+  over the OP range the record visits (% of OP, measured: its 1st to 99th
+  percentile), which R alone does not set: a calibrated characteristic errs only by
+  its curvature over the few percent of OP a loop visits;
 - saturation: a travel limit above or below the operating point, 0.2-1.2 setpoint
   excursions away; size the share of samples with OP beyond the limit (%, measured);
 - actuator_lag: pole a 0.5-0.95; size a;
 - external_oscillation: a sinusoid of period 10-100 samples, amplitude 0.3-4 noise
   std (log-uniform); size amplitude / noise std;
-- drift: a random walk, step 0.01-0.1 noise std (log-uniform); size step / noise std;
+- drift: a random walk, step 0.01-0.1 noise std (log-uniform); size the standard
+  deviation of the drift over the record / noise std (measured: a random walk of one
+  step size wanders far on one record and little on another);
 - quantization: a sensor step of 0.05-2 noise std (log-uniform); size step / noise std.
 
 Output-side sizes are relative to the noise standard deviation of the effect-free
@@ -90,9 +95,10 @@ INPUT_EFFECTS = ("stiction", "deadband", "dead_time", "valve_characteristic", "s
 OUTPUT_EFFECTS = ("external_oscillation", "drift", "quantization")
 EFFECTS = INPUT_EFFECTS + OUTPUT_EFFECTS
 SIZES = {"stiction": "S (%)", "deadband": "width (%)", "dead_time": "extra dead time (samples)",
-         "valve_characteristic": "rangeability R", "saturation": "samples at the limit (%)",
+         "valve_characteristic": "valve position error over the OP visited (% of OP)",
+         "saturation": "samples at the limit (%)",
          "actuator_lag": "lag pole a", "external_oscillation": "amplitude / noise std",
-         "drift": "step / noise std", "quantization": "step / noise std"}
+         "drift": "drift std / noise std", "quantization": "step / noise std"}
 
 DEFAULT_RANGES = {
     # what a draw hides: probabilities of nothing, of two effects, the rest one effect
@@ -310,7 +316,7 @@ def build(seed: int, ranges: dict | None = None) -> Case:
         exp = dataclasses.replace(exp, nsr=jnp.asarray(p["nsr"] * float(jnp.var(base.pv_clean))
                                                        / float(jnp.var(rec.pv_clean))))
         rec = simulate_loop(plant, exp, key, n)
-    size = measured_size(effects[0], p, rec, d) if effects else None
+    size = measured_size(effects[0], p, rec, d, plant) if effects else None
     p["noise_std"] = _noise_std(rec, d)
     return Case(seed=seed, effects=effects, size=size, params=p, plant=plant, nominal=nominal, experiment=exp, n=n,
                 loop=rec.loop)
@@ -322,7 +328,7 @@ def _noise_std(rec, pole) -> float:
     return float(rec.noise_gain) / math.sqrt(1.0 - pole**2)
 
 
-def measured_size(effect: str, p: dict, rec, pole: float) -> float:
+def measured_size(effect: str, p: dict, rec, pole: float, plant: LoopModel) -> float:
     """The size a power curve puts `effect` at (`SIZES`), measured on the record
     where it depends on the loop."""
     if effect == "stiction":
@@ -332,7 +338,7 @@ def measured_size(effect: str, p: dict, rec, pole: float) -> float:
     if effect == "dead_time":
         return float(p["dead_time"]["samples"])
     if effect == "valve_characteristic":
-        return p["valve_characteristic"]["R"]
+        return characteristic_error(p, np.asarray(rec.op))
     if effect == "saturation":
         lim = next(iter(p["saturation"].values()))
         op = np.asarray(rec.op)
@@ -343,7 +349,26 @@ def measured_size(effect: str, p: dict, rec, pole: float) -> float:
     sigma = _noise_std(rec, pole)
     if effect == "external_oscillation":
         return p["external_oscillation"]["amplitude"] / sigma
+    if effect == "drift":
+        drift = next(o for o in plant.output if isinstance(o, Drift))  # its random walk alone
+        return float(np.std(np.asarray(drift(jnp.zeros(rec.op.shape[0]))))) / sigma
     return p[effect]["step"] / sigma
+
+
+def characteristic_error(p: dict, op) -> float:
+    """The largest error (% of OP) of the nominal's valve position against the
+    plant's equal-percentage valve over the OP range `op` visits (1st to 99th
+    percentile), both through the plant's process gain: calibrated, the plant's valve
+    is scaled to unit slope at the operating point; otherwise the nominal's linear
+    valve passes OP unchanged."""
+    R, op0 = p["valve_characteristic"]["R"], p["op0"]
+    lo, hi = np.percentile(op, [1, 99])
+    u = np.linspace(lo, hi, 201)
+    if p["valve_characteristic"]["calibrated"]:
+        v = (_eq_pct(u, R) - _eq_pct(op0, R)) / _eq_pct_slope(op0, R) + op0
+    else:
+        v = _eq_pct(u, R)
+    return float(np.max(np.abs(v - u)))
 
 
 def right(case: Case, d) -> bool:

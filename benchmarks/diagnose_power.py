@@ -46,9 +46,9 @@ from jaxstiction.internal import ACCEPTANCE_RULES  # noqa: E402
 
 # size bins per effect (left edges; the last bin is open)
 BINS = {"stiction": (0.5, 2.0, 4.0, 7.0), "deadband": (0.5, 2.0, 4.0, 7.0), "dead_time": (1, 3, 5, 8),
-        "valve_characteristic": (3.0, 6.0, 15.0, 30.0), "saturation": (0.0, 5.0, 20.0, 50.0),
+        "valve_characteristic": (0.1, 1.0, 3.0, 10.0), "saturation": (0.0, 5.0, 20.0, 50.0),
         "actuator_lag": (0.5, 0.7, 0.8, 0.9), "external_oscillation": (0.3, 0.6, 1.2, 2.4),
-        "drift": (0.01, 0.02, 0.04, 0.07), "quantization": (0.05, 0.15, 0.5, 1.0)}
+        "drift": (0.05, 0.25, 0.5, 1.0), "quantization": (0.05, 0.15, 0.5, 1.0)}
 
 
 def run_one(seed, ranges=None):
