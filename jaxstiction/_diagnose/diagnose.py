@@ -437,10 +437,9 @@ def _gain_from_the_block(fam, model, after, level, drift_noise, b, s, proof, ev)
       better than the refitted linear valve held out, both with the drift's own
       noise model (its integrating predictor follows the wander, so only what the
       block adds to OP's effect is scored). On random drift draws
-      (`benchmarks/diagnose_power.py --only drift`, seeds 5000-5039) four travel
-      limits and actuator lags that passed every other check and were named instead
-      of the drift all predicted worse this way (-0.02 to -1.3 PV units); the same
-      exemption holds.
+      (`benchmarks/diagnose_power.py --only drift`, seeds 5000-5039) two travel
+      limits and two actuator lags pass every other check, and all four predict
+      worse this way (-0.02 to -1.3 PV units); the same exemption holds.
 
     A valve characteristic is exempt from the first check (its gain over the level
     is recorded, not required): on 200 random concealed draws
