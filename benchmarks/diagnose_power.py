@@ -60,6 +60,7 @@ def run_one(seed, ranges=None):
     d = diagnose(case.loop, case.nominal)
     findings = [{"effect": f.effect, "accepted": f.accepted, "significant": bool(f.evidence.get("significant")),
                  "rejected_by": f.evidence.get("rejected_by"), "rules_failed": f.evidence.get("rules_failed"),
+                 "statistic": f.evidence.get("statistic"), "p_value": f.evidence.get("p_value"),
                  "second": "with" in f.parameters} for f in d.findings]
     return {"seed": seed, "effects": list(case.effects), "label": case.label, "size": case.size, "n": case.n,
             "verdict": d.verdict, "right": concealed.right(case, d), "accepted": list(d.accepted),

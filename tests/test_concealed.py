@@ -249,3 +249,40 @@ def test_a_drift_is_not_named_as_the_input_block_that_follows_it():
     assert not lag.accepted and lag.evidence["rejected_by"] == "k_step_gain_under_drift"
     assert "k_step_gain_under_drift" in REJECTION_RULES
     assert d.verdict == "drift" and concealed.right(case, d)
+
+
+@pytest.mark.slow
+def test_a_drift_is_tested_for_feedback_on_its_own_innovations():
+    # a large drift (2.4 noise std of wander, 2000 samples): an AR(2) cannot whiten
+    # the random walk, and what it leaves correlates with the OP the controller moves
+    # against it; filtered by the drift's own noise model first, the residual passes
+    from jaxstiction import diagnose
+    from jaxstiction._diagnose.heldout import _residual_cross_correlation
+
+    case = concealed.build(5026, {"lengths": (2000,), "only": "drift"})
+    d = diagnose(case.loop, case.nominal)
+    drift = next(f for f in d.findings if f.effect == "drift")
+    op, pv = np.asarray(case.loop.op), np.asarray(case.loop.pv)
+    n_est = int(round(2 / 3 * len(op)))  # the default hold-out, a third
+    assert not _residual_cross_correlation(drift.model, op, pv, n_est)["passes"]
+    cc = _residual_cross_correlation(drift.model, op, pv, n_est, innovations=True)
+    assert cc["passes"] and cc["whitened_by"] == "the noise model"
+    assert drift.evidence["residual_cross_correlation_passes"] and drift.accepted
+    assert d.verdict == "drift" and concealed.right(case, d)
+
+
+@pytest.mark.slow
+def test_a_drift_whose_ar2_whitened_residual_passes_is_not_tested_again():
+    # P8 seed 22: the AR(2)-whitened residual leaves one lag of 20 out of the band
+    # (allowed), the drift model's innovations two; the first test decides
+    from jaxstiction import diagnose, make_scenario
+    from jaxstiction._diagnose.heldout import _residual_cross_correlation
+
+    sc = make_scenario("P8", seed=22)
+    d = diagnose(sc.full.loop, sc.nominal)
+    drift = next(f for f in d.findings if f.effect == "drift")
+    op, pv = np.asarray(sc.full.loop.op), np.asarray(sc.full.loop.pv)
+    cc = _residual_cross_correlation(drift.model, op, pv, int(round(2 / 3 * len(op))), innovations=True)
+    assert cc["passes"] and "whitened_by" not in cc
+    assert d.verdict == "drift"
+

@@ -358,7 +358,8 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             ev["rejected_by"] = "significance"
             findings.append(Finding(fam, {**params, "interval": iv}, ev, before, before, False))
             continue
-        after, gain, kgain, cc = _prove(model, b.op, b.pv, b.n_est, before, osc if fam in INPUT_FAMILIES else None)
+        after, gain, kgain, cc = _prove(model, b.op, b.pv, b.n_est, before, osc if fam in INPUT_FAMILIES else None,
+                                        innovations=fam == "drift")
         ev.update(heldout_gain=round(gain, 3), k_step_gain=round(float(kgain), 5),
                   residual_cross_correlation_passes=cc["passes"],
                   rank_score=round(T_rank - 2 * dof.get(fam, 1), 3))

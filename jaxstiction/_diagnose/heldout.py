@@ -178,22 +178,34 @@ def _band_statistics(resid, c, d, w, f0):
     return jax.vmap(one)(resid)
 
 
-def _prove(model: LoopModel, op, pv, n_est: int, before: dict, other=None):
+def _prove(model: LoopModel, op, pv, n_est: int, before: dict, other=None, innovations=False):
     """A candidate model's proof: its held-out figures, its held-out simulation and
     k-step gains over `before`, and the input cross-correlation test of its
     (AR(2)-whitened) estimation residual, with `other` (an effect found beside it,
-    e.g. an external oscillation, in PV units) removed first."""
+    e.g. an external oscillation, in PV units) removed first, and with `innovations`
+    filtered by its noise model before (`_residual_cross_correlation`)."""
     after = _heldout(model, op, pv, n_est)
     gain = _diff(after["fitness"], before["fitness"])
     kgain = _diff(before[f"k{K_STEP}_step_rms"], after[f"k{K_STEP}_step_rms"])
-    return after, gain, kgain, _residual_cross_correlation(model, op, pv, n_est, other)
+    return after, gain, kgain, _residual_cross_correlation(model, op, pv, n_est, other, innovations)
 
 
-def _residual_cross_correlation(model: LoopModel, op, pv, n_est: int, other=None) -> dict:
+def _residual_cross_correlation(model: LoopModel, op, pv, n_est: int, other=None, innovations=False) -> dict:
     """The input cross-correlation test of `model`'s (AR(2)-whitened) estimation
-    residual, with `other` (in PV units) removed first."""
+    residual, with `other` (in PV units) removed first.
+
+    With `innovations` (a drift's model), a residual that fails is tested again
+    filtered first by the model's own noise model $D/C$, and passes if either passes:
+    an AR(2) cannot whiten a large random walk, whose wander left in correlates with
+    the OP that the controller moves against it (random draws 2181 and 5026), while
+    the drift model, fitted on a grid with AR(1) noise, can leave a lag or two out of
+    the band where the AR(2) left none (P8 seed 22)."""
     sim = np.asarray(_jit_scored(model, jnp.asarray(op), jnp.asarray(pv), jnp.ones(len(op)))[0])
     resid = pv - sim if other is None else pv - sim - other
-    return cross_correlation(op[:n_est], ar_whiten(resid[:n_est], 2)[0])
+    cc = cross_correlation(op[:n_est], ar_whiten(resid[:n_est], 2)[0])
+    if innovations and not cc["passes"]:
+        e = np.asarray(lfilter(model.noise.d, model.noise.c, jnp.asarray(resid - np.mean(resid[:n_est]))))
+        cc = {**cross_correlation(op[:n_est], ar_whiten(e[:n_est], 2)[0]), "whitened_by": "the noise model"}
+    return cc
 
 
