@@ -286,3 +286,20 @@ def test_a_drift_whose_ar2_whitened_residual_passes_is_not_tested_again():
     assert cc["passes"] and "whitened_by" not in cc
     assert d.verdict == "drift"
 
+
+@pytest.mark.slow
+def test_a_slip_hidden_by_an_external_oscillation_is_tested_again_without_it():
+    # a Kano valve (S 3.5, J 1.1) beside an external oscillation: with the
+    # oscillation left in the record, J's likelihood ratio stays under 3.84 and the
+    # valve was named a deadband; once the oscillation proven on top is removed,
+    # the slip is significant, and both effects are named
+    from jaxstiction import diagnose
+
+    case = concealed.build(2098, {"lengths": (2000,)})
+    assert case.effects == ("stiction", "external_oscillation")
+    d = diagnose(case.loop, case.nominal)
+    st = next(f for f in d.findings if f.effect == "stiction")
+    db = next(f for f in d.findings if f.effect == "deadband")
+    assert st.accepted and st.evidence["slip_statistic_beside_oscillation"] > 3.84
+    assert not db.accepted and db.evidence["rejected_by"] == "stiction_vs_deadband"
+    assert d.verdict == "stiction" and concealed.right(case, d)

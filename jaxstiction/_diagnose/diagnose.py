@@ -194,6 +194,11 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
         verdict, model = ordered[0].effect, ordered[0].model
     if verdict in INPUT_FAMILIES:  # two effects: does an external oscillation remain?
         findings, model = _second_oscillation(b, g, s, proof, settings, ordered[0], findings, say)
+        slip = _slip_beside_oscillation(b, g, findings, ordered, model, say) if verdict == "deadband" else None
+        if slip is not None:  # stiction after all, if the oscillation proves itself on top of it too
+            f2, m2 = _second_oscillation(b, g, s, proof, settings, slip[1][0], slip[0], say)
+            if any(f.effect == "external_oscillation" and f.accepted for f in f2):
+                (findings, ordered), model, verdict = (f2, slip[1]), m2, "stiction"
     if ordered:
         findings = _alternatives(findings, ordered[0])
     # the runner-up: the best other explanation, not a block the diagnosed model holds
@@ -504,6 +509,39 @@ def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):
         findings = [_revised(f, False, note=note, rejected_by="stiction_vs_deadband") if f.effect == drop else f
                     for f in findings]
     return findings, _ranked(list(acc.values()))
+
+
+def _slip_beside_oscillation(b: _Baseline, g: _Grid, findings: list[Finding], ordered: list[Finding],
+                             model: LoopModel, say):
+    """Stiction against deadband again, once an oscillation is proven on top of the
+    deadband: the oscillation left in the record inflates both candidates' losses
+    alike, so it shrinks their likelihood ratio towards 0 and hides a slip (random
+    draws 2054 and 2098: Kano valves beside an external oscillation named deadband).
+    The same test as `_accepted_in_order`'s, on the record with the oscillation
+    removed. Returns `(findings, ordered)` with stiction first and the oscillation to
+    be judged again on top of it, or `None` when J is still not significantly above 0."""
+    osc = next((f for f in findings if f.effect == "external_oscillation" and f.accepted
+                and f.parameters.get("with") == "deadband"), None)
+    st = next((f for f in findings if f.effect == "stiction"), None)
+    if osc is None or st is None or st.evidence.get("rejected_by") != "stiction_vs_deadband":
+        return None
+    first = ordered[0]
+    path = np.asarray(_jit_scored(model, b.opj, b.pvj, b.whole)[0] - _jit_scored(first.model, b.opj, b.pvj,
+                                                                                 b.whole)[0])
+    _, v_in, _ = g.stats((b.pvj - jnp.asarray(path) - b.mu) / b.sy)
+    vs, vd = float(np.min(v_in[g.slices["stiction"]])), float(np.min(v_in[g.slices["deadband"]]))
+    lr_j = g.count * float(np.log(vd / vs))
+    say(f"stiction against deadband with the oscillation removed: likelihood ratio {lr_j:.1f}")
+    if lr_j < 3.84:
+        return None
+    note = (f"J is significantly above 0 once the oscillation proven on top of the deadband is removed "
+            f"(likelihood ratio {lr_j:.1f}): the deadband is subsumed by stiction")
+    st = _revised(st, True, slip_statistic_beside_oscillation=round(lr_j, 3),
+                  note="J is significant with the oscillation on top removed")
+    findings = [st if f.effect == "stiction" else
+                _revised(f, False, note=note, rejected_by="stiction_vs_deadband") if f.effect == "deadband" else f
+                for f in findings if f is not osc]
+    return findings, [st] + [f for f in ordered if f.effect != "deadband"]
 
 
 def _alternatives(findings: list[Finding], first: Finding) -> list[Finding]:
