@@ -52,6 +52,7 @@ A diagnosis is the nominal [`jaxstiction.LoopModel`][] plus one block of the lib
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import equinox as eqx
@@ -317,7 +318,19 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
     drift_sig = s.pvals["drift"] <= settings.alpha and s.T_obs["drift"] > 0
     # the drift's own noise model (its integrating predictor), under which an input
     # block must still predict better than the linear valve (`_gain_from_the_block`)
-    drift_noise = NoiseModel(*drift_noise_model(float(s.drift_obs[1]), float(s.drift_obs[2]))) if drift_sig else None
+    drift = None
+    if drift_sig:
+        drift_noise = NoiseModel(*drift_noise_model(float(s.drift_obs[1]), float(s.drift_obs[2])))
+
+        @functools.cache
+        def linear_heldout():
+            # what every input block is held to under the drift, computed once (when
+            # the first block reaches that check): the refitted linear valve's
+            # held-out fitness, and its k-step error with the drift's noise model
+            return (_heldout(s.base_model, b.op, b.pv, b.n_est)["fitness"],
+                    _heldout(_with_noise(s.base_model, drift_noise), b.op, b.pv, b.n_est)[f"k{K_STEP}_step_rms"])
+
+        drift = (drift_noise, linear_heldout)
     for fam in s.names:
         # significant: beyond the bootstrap null *and* better than the nominal itself
         sig_f = s.pvals[fam] <= settings.alpha and s.T_obs[fam] > 0
@@ -352,7 +365,7 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
         else:  # drift: an integrating noise model; no simulation gain possible
             _, a_d, q_d, s_d, a_s = (float(v) for v in s.drift_obs)
             c_d, d_d = drift_noise_model(a_d, q_d)
-            model = eqx.tree_at(lambda m: m.noise, b.nominal, NoiseModel(c=c_d, d=d_d))
+            model = _with_noise(b.nominal, NoiseModel(c=c_d, d=d_d))
             # what the drift must beat: the test's null, stationary AR(1) noise about a level
             stationary = eqx.tree_at(lambda m: (m.noise, m.pv_offset), b.nominal, (
                 NoiseModel(c=jnp.ones(1), d=jnp.asarray([1.0, -a_s])),
@@ -391,7 +404,7 @@ def _family_findings(b: _Baseline, g: _Grid, s: _Significance, proof: _Proof,
             if not ok:
                 ev["rejected_by"] = "heldout_gain"
             if ok and fam in INPUT_FAMILIES:
-                ok = _gain_from_the_block(fam, model, after, lvl, drift_noise, b, s, proof, ev)
+                ok = _gain_from_the_block(fam, model, after, lvl, drift, b, s, proof, ev)
             if fam == "external_oscillation" and not ok and cc["passes"]:
                 ok = proof.narrow_band(ev, params, gain, b.pv - s.base_sim, b.c0, b.d0, P)
                 if ok:  # no deterministic block: the model stays the nominal
@@ -419,7 +432,12 @@ def _level_only(b: _Baseline) -> LoopModel:
     return eqx.tree_at(lambda m: m.pv_offset, b.nominal, b.nominal.pv_offset + float(np.mean(b.z[:b.n_est])))
 
 
-def _gain_from_the_block(fam, model, after, level, drift_noise, b, s, proof, ev) -> bool:
+def _with_noise(model: LoopModel, noise: NoiseModel) -> LoopModel:
+    """`model` with its noise model replaced by `noise`."""
+    return eqx.tree_at(lambda m: m.noise, model, noise)
+
+
+def _gain_from_the_block(fam, model, after, level, drift, b, s, proof, ev) -> bool:
     """Does an input block's held-out gain over the nominal come from the block, not
     from what its refit of the offset (and B) picks up besides? Three checks, each
     recorded in `ev`:
@@ -464,20 +482,16 @@ def _gain_from_the_block(fam, model, after, level, drift_noise, b, s, proof, ev)
         failed.append("gain_over_level")
         notes.append(f"its held-out gain is the refitted level's: {g_lvl:+.2f} points over the nominal with only "
                      f"its level refitted, {need:.2f} needed")
-    if drift_noise is not None and not (fam == "valve_characteristic" and s.by_op):
-        g_lin = _diff(after["fitness"], _heldout(s.base_model, b.op, b.pv, b.n_est)["fitness"])
+    if drift is not None and not (fam == "valve_characteristic" and s.by_op):
+        drift_noise, linear_heldout = drift
+        f_lin, k_lin = linear_heldout()
+        g_lin = _diff(after["fitness"], f_lin)
         ev["gain_over_linear"] = round(g_lin, 3)
         if g_lin <= 0:
             failed.append("gain_over_linear_under_drift")
             notes.append(f"a drift is significant, and the linear valve refitted the same way scores as well held "
                          f"out ({g_lin:+.2f} points): its gain is the refit following the drift, not the block")
-        key = f"k{K_STEP}_step_rms"
-
-        def drifting(m):
-            return eqx.tree_at(lambda m_: m_.noise, m, drift_noise)
-
-        k_lin = _heldout(drifting(s.base_model), b.op, b.pv, b.n_est)[key]
-        k_blk = _heldout(drifting(model), b.op, b.pv, b.n_est)[key]
+        k_blk = _heldout(_with_noise(model, drift_noise), b.op, b.pv, b.n_est)[f"k{K_STEP}_step_rms"]
         g_k = _diff(k_lin, k_blk)
         ev["k_step_gain_under_drift"] = round(g_k, 5)
         if not g_k > 0:
@@ -490,6 +504,16 @@ def _gain_from_the_block(fam, model, after, level, drift_noise, b, s, proof, ev)
     return not failed
 
 
+SLIP_LR = 3.84  # chi2(1) at 95 %: J significantly above 0
+
+
+def _slip_ratio(g: _Grid, v_in) -> float:
+    """Likelihood ratio of the best stiction candidate over the best deadband (its
+    J = 0 member) on the estimation data, from the grid's losses `v_in`."""
+    vs, vd = float(np.min(v_in[g.slices["stiction"]])), float(np.min(v_in[g.slices["deadband"]]))
+    return g.count * float(np.log(vd / vs))
+
+
 def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):
     """Settle stiction against deadband, then rank the accepted findings (`_ranked`).
     Returns the findings (the one dropped marked so) and the accepted ones in order."""
@@ -500,10 +524,8 @@ def _accepted_in_order(findings: list[Finding], g: _Grid, s: _Significance):
     # through the controller, and the deadband's passed)
     acc = {f.effect: f for f in findings if f.accepted}
     if "stiction" in acc and "deadband" in acc and not acc["stiction"].evidence.get("joint"):
-        vs = float(np.min(s.v_in[g.slices["stiction"]]))
-        vd = float(np.min(s.v_in[g.slices["deadband"]]))
-        lr_j = g.count * np.log(vd / vs)
-        drop, note = (("stiction", "J is not significantly above 0: deadband") if lr_j < 3.84 else
+        lr_j = _slip_ratio(g, s.v_in)
+        drop, note = (("stiction", "J is not significantly above 0: deadband") if lr_j < SLIP_LR else
                       ("deadband", f"subsumed by stiction: J is significantly above 0 (likelihood ratio {lr_j:.1f})"))
         acc.pop(drop)
         findings = [_revised(f, False, note=note, rejected_by="stiction_vs_deadband") if f.effect == drop else f
@@ -526,13 +548,13 @@ def _slip_beside_oscillation(b: _Baseline, g: _Grid, findings: list[Finding], or
     if osc is None or st is None or st.evidence.get("rejected_by") != "stiction_vs_deadband":
         return None
     first = ordered[0]
+    if model is first.model:  # proven as a narrow band, no sinusoid added: nothing to remove
+        return None
     path = np.asarray(_jit_scored(model, b.opj, b.pvj, b.whole)[0] - _jit_scored(first.model, b.opj, b.pvj,
                                                                                  b.whole)[0])
-    _, v_in, _ = g.stats((b.pvj - jnp.asarray(path) - b.mu) / b.sy)
-    vs, vd = float(np.min(v_in[g.slices["stiction"]])), float(np.min(v_in[g.slices["deadband"]]))
-    lr_j = g.count * float(np.log(vd / vs))
+    lr_j = _slip_ratio(g, g.stats((b.pvj - jnp.asarray(path) - b.mu) / b.sy)[1])
     say(f"stiction against deadband with the oscillation removed: likelihood ratio {lr_j:.1f}")
-    if lr_j < 3.84:
+    if lr_j < SLIP_LR:
         return None
     note = (f"J is significantly above 0 once the oscillation proven on top of the deadband is removed "
             f"(likelihood ratio {lr_j:.1f}): the deadband is subsumed by stiction")
