@@ -8,6 +8,7 @@ setpoint.
     python benchmarks/whatif.py --set fleet --seeds 0-49 --pad --no-oracle      # (b): ranking, 50 loops
     python benchmarks/whatif.py --set concealed --seeds 0-7 --design both       # grid against gradient
     python benchmarks/whatif.py --set concealed --seeds 0-49 --no-oracle --no-polish   # the refit without the polish
+    python benchmarks/whatif.py --set concealed --seeds 0-49 --ceiling            # the best compensator on the truth
     python benchmarks/whatif.py ... --json
 
 Two sets of loops:
@@ -33,6 +34,12 @@ method with a perfect fit). Prints per loop and a summary: the share of loops wh
 `error_std_repaired` is within +-15 % of the truth (min, median, which seeds miss),
 Spearman's rho of predicted against true benefit, and the share of a repair's
 variability reduction that the knocker achieves on the true plant, with its travel.
+
+`--ceiling` fits nothing: it runs each true plant with every compensator of a wide
+grid (`CEILING_GRID`: knocks and constant reinforcement, amplitudes scaled by the
+true S) and prints the best share of a repair's reduction reached with the valve
+travel capped at 2, 5 and 20 times the as-is travel, and without a cap: what the
+design could reach with the valve known exactly.
 """
 
 from __future__ import annotations
@@ -56,6 +63,8 @@ from jaxstiction import (  # noqa: E402
     Controller,
     estimate,
     Kano,
+    Knocker,
+    KnockerGrid,
     make_loop,
     Settings,
     whatif,
@@ -138,6 +147,23 @@ class Concealed:
         op, pv, _, sp = self.truth()
         return op, pv, sp, 1.0
 
+    def truths(self, knockers):
+        """`(pv, valve)` of the recorded part under each of a batch of `knockers`."""
+        return _concealed_runs(self.plant(), jnp.asarray(self.kp), jnp.asarray(self.ki), jnp.asarray(self.sp_full),
+                               jnp.asarray(self.v_full), knockers)
+
+
+@jax.jit
+def _concealed_runs(plant, kp, ki, sp, v, knockers):
+    ctrl = Controller(kp=kp, ki=ki)
+    init = plant.rest_state(jnp.full((4,), 50.0))
+
+    def one(k):
+        run = closed_loop(plant, ctrl, sp, v, init, 50.0, k)
+        return run.pv[RUN:], run.valve[RUN:]
+
+    return jax.vmap(one)(knockers)
+
 
 # ---------------------------------------------------------------------------- fleet
 
@@ -198,6 +224,15 @@ class Fleet:
 
     def record(self):
         return self.loop.op, self.loop.pv, self.loop.sp, 1.0
+
+    def truths(self, knockers):
+        p = {k: jnp.asarray(np.asarray(v, float)) for k, v in self.params.items()}
+        p["delay"] = p["delay"].astype(jnp.int32)
+        run = jax.vmap(lambda a, w, h: _fleet_loop(p, jnp.asarray(self.r), jnp.asarray(self.load),
+                                                   jnp.asarray(self.out), (a, w, h)))
+        _, pv, v = jax.jit(run)(knockers.amplitude, knockers.width, knockers.period)
+        cut = slice(FLEET_RUN_IN, FLEET_RUN_IN + self.n)
+        return np.asarray(pv)[:, cut] + 50.0, np.asarray(v)[:, cut]
 
     def plant(self):
         return None  # the fleet's loops carry a load at the input: no LoopModel of them
@@ -267,6 +302,50 @@ def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, desig
     return out
 
 
+CEILING_GRID = KnockerGrid(amplitudes=(0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.3), widths=(1, 2, 3, 5, 10),
+                           periods=(2, 3, 4, 5, 6, 8, 10, 14, 20, 30, 50),
+                           reinforcement=(0.1, 0.2, 0.3, 0.4, 0.45, 0.5, 0.55, 0.6, 0.8))
+CEILING_CAPS = (2.0, 5.0, 20.0, np.inf)
+
+
+def ceiling_loop(case) -> dict:
+    """The best share of a repair's reduction in std(SP - PV) that any compensator of
+    `CEILING_GRID` (amplitudes times the true S) reaches on the true plant, with the
+    valve travel capped at each of `CEILING_CAPS` times the as-is travel."""
+    _, pv_t, valve_t, sp = case.truth()
+    _, pv_l, valve_l, _ = case.truth(0.0, 0.0)
+    pts = CEILING_GRID.points()
+    ks = Knocker(amplitude=jnp.asarray([p[0] * case.S for p in pts]), width=jnp.asarray([float(p[1]) for p in pts]),
+                 period=jnp.asarray([p[2] for p in pts], jnp.int32))
+    pv_k, valve_k = map(np.asarray, case.truths(ks))
+    asis, rep = float(np.std(sp - pv_t)), float(np.std(sp - pv_l))
+    travel0 = float(np.sum(np.abs(np.diff(valve_t))))
+    share = (asis - np.std(sp[None] - pv_k, axis=1)) / (asis - rep)
+    ratio = np.sum(np.abs(np.diff(valve_k, axis=1)), axis=1) / max(travel0, 1e-12)
+    out = dict(seed=case.seed, kind=case.kind, S=case.S, J=case.J, true_asis=asis, true_rep=rep,
+               travel_repaired=float(np.sum(np.abs(np.diff(valve_l)))) / max(travel0, 1e-12))
+    for cap in CEILING_CAPS:
+        ok = np.isfinite(share) & (ratio <= cap)
+        i = int(np.argmax(np.where(ok, share, -np.inf)))
+        tag = "any" if np.isinf(cap) else f"{cap:g}"
+        out[f"best_{tag}"] = float(share[i]) if ok.any() else float("nan")
+        out[f"best_{tag}_at"] = [round(pts[i][0], 3), pts[i][1], pts[i][2], round(float(ratio[i]), 2)]
+    return out
+
+
+def ceiling_summary(rows) -> dict:
+    res = {}
+    for kind in sorted({r["kind"] for r in rows}) + ["all"]:
+        sel = [r for r in rows if kind == "all" or r["kind"] == kind]
+        res[kind] = {
+            ("any" if np.isinf(c) else f"travel<={c:g}x"): dict(
+                at_least_half=int(sum(r[f"best_{'any' if np.isinf(c) else f'{c:g}'}"] >= 0.5 for r in sel)),
+                loops=len(sel),
+                median=float(np.nanmedian([r[f"best_{'any' if np.isinf(c) else f'{c:g}'}"] for r in sel])))
+            for c in CEILING_CAPS}
+    return res
+
+
 def summary(rows, designs) -> dict:
     """The figures over the loops the what-if could read (`enough`, and a finite
     truth over the same samples); `unusable` lists the others."""
@@ -318,6 +397,8 @@ def main():
     ap.add_argument("--pad", action="store_true",
                     help="pad each loop to the screen's length bucket (masked), so loops of many lengths share a "
                          "few compiled programs (the fleet)")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="fit nothing: the best compensator of a wide grid on each true plant, by travel cap")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     settings = SCREEN_ESTIMATE if args.estimator == "screen" else Settings(use_spline=False)
@@ -326,6 +407,19 @@ def main():
         cases = [Concealed(s) for s in args.seeds]
     else:
         cases = [Fleet(s, lp) for s, lp in zip(args.seeds, realistic_fleet(args.seeds, "stiction"))]
+    if args.ceiling:
+        rows = []
+        for c in cases:
+            rows.append(ceiling_loop(c))
+            if not args.json:
+                r = rows[-1]
+                print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f} J {r['J']:5.2f}  best share of a repair "
+                      + ", ".join(f"{t}: {r[f'best_{t}']:.2f} at {r[f'best_{t}_at']}" for t in ("2", "5", "20", "any")),
+                      flush=True)
+        res = ceiling_summary(rows)
+        res["set"], res["seeds"] = args.set, seeds_text(args.seeds)
+        print(json.dumps({"summary": res, "loops": rows}) if args.json else json.dumps(res, indent=1))
+        return
     rows = []
     for c in cases:
         wset = WhatIfSettings(init_count=args.init_count, refine=not args.no_refine, polish=not args.no_polish)

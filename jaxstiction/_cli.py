@@ -231,6 +231,8 @@ def _whatif_of(args, fit, loop, name: str) -> dict:
 
 def _whatif_text(e: dict) -> str:
     """The text summary of a `whatif` object."""
+    from ._whatif.report import compensator_words
+
     def f(v, nd=3):
         return "–" if v is None else f"{v:.{nd}g}"
 
@@ -239,15 +241,14 @@ def _whatif_text(e: dict) -> str:
     lines = [
         "  what a repair would buy (the fitted loop replayed under the disturbance it met):",
         f"    std(SP - PV): as is {f(e['error_std_as_is'])}, repaired {f(e['error_std_repaired'])}"
-        + (f" [{f(iv[0])}, {f(iv[1])}]" if iv else "") + f", with a knocker {f(e['error_std_compensated'])}"
+        + (f" [{f(iv[0])}, {f(iv[1])}]" if iv else "") + f", compensated {f(e['error_std_compensated'])}"
         f" (recorded {f(e['error_std_recorded'])}); benefit {f(e['benefit'])}"
         + (f" ({f(e['benefit_percent_of_range'])} % of the PV range)" if e.get("benefit_percent_of_range") is not None
            else ""),
         f"    valve travel (% of span per hour): as is {f(e['travel_as_is'], 4)}, repaired "
-        f"{f(e['travel_repaired'], 4)}, with a knocker {f(e['travel_compensated'], 4)}; reversals per hour "
+        f"{f(e['travel_repaired'], 4)}, compensated {f(e['travel_compensated'], 4)}; reversals per hour "
         f"{f(e['reversals_as_is'], 4)}, {f(e['reversals_repaired'], 4)}, {f(e['reversals_compensated'], 4)}",
-        f"    knocker: amplitude {f(k['amplitude'])} %, width {k['width_samples']}, period {k['period_samples']} "
-        "samples",
+        f"    {compensator_words(k)}",
         f"    controller: kp {f(c['kp'], 4)}, ki {f(c['ki'], 4)} per sample ({c['source']}, explains "
         f"{f(100 * c['fit'] if c['fit'] is not None else None, 3)} % of OP's moves)",
     ]
@@ -404,7 +405,7 @@ def cmd_compensate(args):
     from ._io.read import loop_name, read_loop
     from ._loop import decimate
     from ._programs import exported_call
-    from ._whatif.report import compensation_json
+    from ._whatif.report import compensation_json, compensator_words
     from ._whatif.settings import CompensateSettings
     from ._whatif.whatif import compensate
 
@@ -421,7 +422,7 @@ def cmd_compensate(args):
     t0 = time.time()
     r = fit(op, pv, ts=ts, name=name, settings=FULL_SEARCH_ESTIMATE)
     _log(f"compensate: fitted in {time.time() - t0:.1f} s (S = {r.S:.3g}, J = {r.J:.3g} % of span); designing a "
-         f"knocker ({args.method}) ...")
+         f"compensator ({args.method}) ...")
     t0 = time.time()
     c = jax.tree.map(np.asarray, exported_call("compensate", lambda f, lp, k: compensate(f, lp, settings, controller=k),
                                                r.fit, loop, controller, static=repr(settings)))
@@ -436,10 +437,9 @@ def cmd_compensate(args):
         write_compensation_figure(name, ts, sp, c, payload, Path(args.out) / "compensate.png")
     k = payload["compensator"]
     text = "\n".join([
-        f"loop {name}: knocker for a Kano valve S = {r.S:.3g}, J = {r.J:.3g} % of span ({args.method} design)",
-        f"  pulses of {k['amplitude']:.3g} % of span, {k['width_samples']} sample(s) wide "
-        f"({k['width_s']:g} s), every {k['period_samples']} samples ({k['period_s']:g} s), in the direction OP moves",
-        f"  std(SP - PV): as is {payload['error_std_as_is']:.4g}, with the knocker "
+        f"loop {name}: compensator for a Kano valve S = {r.S:.3g}, J = {r.J:.3g} % of span ({args.method} design)",
+        f"  {compensator_words(k)} (a sample is {ts:g} s)",
+        f"  std(SP - PV): as is {payload['error_std_as_is']:.4g}, compensated "
         f"{payload['error_std_compensated']:.4g} ({payload['reduction_percent']:.1f} % less), repaired "
         f"{payload['error_std_repaired']:.4g}",
         f"  valve travel: {payload['travel_as_is']:.4g} -> {payload['travel_compensated']:.4g} % of span per hour; "
@@ -588,14 +588,15 @@ def build_parser():
                    help=_DECIMATE_HELP + "; not with --model, which is written for the record's own sampling time")
     g.set_defaults(func=cmd_diagnose)
     c = sub.add_parser("compensate", parents=[common],
-                       help="design a knocker (Hagglund 2002) on the identified closed loop, until the valve's repair")
+                       help="design a compensator (Hagglund's knocker or constant reinforcement) on the identified "
+                            "closed loop, until the valve's repair")
     c.add_argument("file", help="the loop's record: CSV with OP and PV columns (t, SP optional), or MATLAB .mat")
     c.add_argument("--ts", type=float, default=None, help="sampling time (s) when the file has no t column")
     c.add_argument("--name", default=None, help=_NAME_HELP)
     c.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
     c.add_argument("--method", choices=("grid", "gradient"), default="grid",
-                   help="grid: every point of the knocker grid simulated (default); gradient: descent through a "
-                        "smoothed valve from a few starts")
+                   help="grid: every point of the compensator grid simulated (default); gradient: the knocker by "
+                        "descent through a smoothed valve from a few starts")
     c.add_argument("--travel-weight", type=float, default=0.05, metavar="W",
                    help="what a doubling of the valve travel costs in the design, as a share of the as-is "
                         "variability (default 0.05)")

@@ -41,7 +41,7 @@ N = 500
 KP, KI = 0.3, 0.01  # the paper's PI, u(t) = u(t-1) + 0.31 e(t) - 0.3 e(t-1)
 SMALL = WhatIfSettings(draws=3, min_samples=50,
                        compensate=CompensateSettings(grid=KnockerGrid(amplitudes=(0.2, 0.5), widths=(1,),
-                                                                      periods=(3, 6))))
+                                                                      periods=(3, 6), reinforcement=(0.5,))))
 
 
 def _signals(seed, n=N, steps=True):
@@ -117,12 +117,39 @@ def test_closed_loop_matches_the_plain_python_reference():
     sp, v = _signals(0)
     plant = nominal_model(chain=(Kano(4.0, 1.0),))
     ctrl = Controller(kp=jnp.asarray(KP), ki=jnp.asarray(KI))
-    for knock in (None, (1.5, 2, 5)):
+    for knock in (None, (1.5, 2, 5), (2.0, 1, 1)):
         k = None if knock is None else Knocker(*knock)
         run = closed_loop(plant, ctrl, jnp.asarray(sp), jnp.asarray(v), _rest_state(plant, 50.0), 50.0, k)
         ref = reference_loop(4.0, 1.0, KP, KI, sp, v, knock=knock)
         for got, want in zip((run.op, run.op_valve, run.valve, run.pv), ref):
             np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-9)
+
+
+def test_constant_reinforcement_is_the_knocker_of_period_one():
+    """`Knocker(a, 1, 1)` adds a x the sign of OP's last move, every sample (none
+    before OP first moves), and the grid and the JSON call it constant reinforcement."""
+    from jaxstiction._whatif.report import knocker_json
+
+    rng = np.random.default_rng(0)
+    u = 50.0 + np.cumsum(np.where(rng.random(200) < 0.3, 0.0, rng.standard_normal(200)))
+    u[:3] = 50.0  # OP has not moved yet
+    k = Knocker(0.7, 1, 1)
+
+    def body(state, tu):
+        return k.step(state, tu[0], tu[1])
+
+    _, pulses = jax.lax.scan(body, k.init(50.0), (jnp.arange(200), jnp.asarray(u)))
+    sign, prev, want = 0.0, 50.0, []
+    for x in u:
+        if x != prev:
+            sign = 1.0 if x > prev else -1.0
+        prev = x
+        want.append(0.7 * sign)
+    np.testing.assert_array_equal(np.asarray(pulses), np.array(want))
+    pts = KnockerGrid(amplitudes=(0.2,), widths=(1,), periods=(4,), reinforcement=(0.4, 0.5)).points()
+    assert pts == ((0.2, 1, 4), (0.4, 1, 1), (0.5, 1, 1))
+    assert knocker_json(k, 2.0, "grid")["kind"] == "constant reinforcement"
+    assert knocker_json(Knocker(0.7, 1, 4), 2.0, "grid")["kind"] == "knocker"
 
 
 def test_closed_loop_jit_equals_no_jit():
@@ -225,7 +252,8 @@ def test_whatif_with_the_true_model_predicts_the_repaired_plant():
                 "benefit", "travel_as_is", "travel_repaired", "travel_compensated", "reversals_as_is",
                 "reversals_repaired", "reversals_compensated", "compensator", "controller", "note"):
         assert key in js
-    assert js["compensator"]["kind"] == "knocker" and js["controller"]["source"] == "given"
+    assert js["compensator"]["kind"] in ("knocker", "constant reinforcement")
+    assert js["controller"]["source"] == "given"
 
 
 def test_whatif_vmap_equals_single_calls():
@@ -320,7 +348,7 @@ def test_knocker_design_is_the_worst_over_the_valve_neighbours():
     assert float(d.objective) == pytest.approx(float(jnp.min(d.grid_objective)), rel=1e-12)
     assert float(d.objective) < 1 + settings.travel_weight
     # pulses of three bands hurt every neighbour: no knocker, and the as-is run
-    hurts = CompensateSettings(grid=KnockerGrid(amplitudes=(3.0,), widths=(1,), periods=(2,)))
+    hurts = CompensateSettings(grid=KnockerGrid(amplitudes=(3.0,), widths=(1,), periods=(2,), reinforcement=(3.0,)))
     d = design_knocker(plant, ctrl, p.replay, p.window, p.ts, p.as_is_stats, hurts, SMALL.reversal_threshold)
     assert float(d.knocker.amplitude) == 0 and float(d.objective) == pytest.approx(1 + hurts.travel_weight)
     assert float(d.compensated.error_std) == pytest.approx(float(p.as_is_stats.error_std), rel=1e-12)

@@ -1,8 +1,12 @@
-r"""A compensator until the repair: a knocker designed on the identified closed loop.
+r"""A compensator until the repair: a knocker or constant reinforcement, designed on
+the identified closed loop.
 
 The knocker (Hägglund 2002; [`jaxstiction.Knocker`][]) adds short pulses to OP in the
 direction OP is moving, so a sticky valve is knocked through its stickband in small
-steps instead of sticking until the controller's integral has wound up a slip. Its
+steps instead of sticking until the controller's integral has wound up a slip.
+Constant reinforcement (Ivan and Lakshminarayanan 2009) is the knocker whose pulse
+never ends (width and period 1): a bias of amplitude $a$ in the direction of OP's
+last move, so a reversal of OP crosses the band at once. The
 three parameters (amplitude $a$, width $\tau$, period $h$) are chosen on the
 fitted loop replayed under the disturbance it met (see `replay`), minimising
 
@@ -15,11 +19,12 @@ the fitted valve and four neighbours (`valve_neighbours`), each against its own 
 without a knocker, and none is chosen when no candidate beats doing nothing.
 The candidates come two ways:
 
-- `"grid"` (default): every point of a [`jaxstiction.KnockerGrid`][] simulated with the
-  fitted Kano valve, all at once in one vmapped closed-loop run;
+- `"grid"` (default): every point of a [`jaxstiction.KnockerGrid`][] (knocks and
+  constant reinforcement) simulated with the fitted Kano valve, all at once in one
+  vmapped closed-loop run;
 - `"gradient"`: gradient descent (Adam) on $\log a$ and a continuous $\tau$ through
   a smoothed Kano valve (`SmoothKano`), from a few periods of the grid, each result
-  then scored with the exact valve.
+  then scored with the exact valve beside the grid's constant reinforcement.
 
 `benchmarks/whatif.py` measures both (the method page *What fixing the valve would buy*).
 """
@@ -86,6 +91,18 @@ def grid_knockers(S, J, settings: CompensateSettings) -> Knocker:
     return Knocker(amplitude=fa * scale, width=width, period=period)
 
 
+def reinforcement_knockers(S, settings: CompensateSettings) -> Knocker:
+    """The grid's constant reinforcement (`KnockerGrid.reinforcement` times `S`) as
+    knockers of width and period 1; `None` when the grid has none."""
+    fa = settings.grid.reinforcement
+    if not fa:
+        return None
+    dtype = jnp.result_type(S)
+    n = len(fa)
+    return Knocker(amplitude=jnp.asarray(fa, dtype) * jnp.maximum(S, 1e-3), width=jnp.ones((n,), dtype),
+                   period=jnp.ones((n,), jnp.int32))
+
+
 def no_knock(dtype) -> Knocker:
     """The knocker that does nothing (amplitude 0)."""
     return Knocker(amplitude=jnp.zeros((), dtype), width=jnp.ones((), dtype), period=jnp.asarray(2, jnp.int32))
@@ -114,13 +131,15 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
     def stats(run):
         return loop_stats(run.pv, rp.sp_stat, run.valve, mask, ts, threshold)
 
-    if settings.method == "grid":
-        ks = grid_knockers(S, J, settings)
-    else:
-        ks = gradient_knockers(model, controller, rp, mask, ts, base, settings)
     none = no_knock(jnp.result_type(S))
+    if settings.method == "grid":
+        parts = [grid_knockers(S, J, settings)]
+    else:
+        parts = [gradient_knockers(model, controller, rp, mask, ts, base, settings),
+                 reinforcement_knockers(S, settings)]
     # no knocker first, so that a tie keeps it
-    ks = jax.tree.map(lambda n, k: jnp.concatenate([jnp.broadcast_to(n, (1,) + n.shape), k]), none, ks)
+    parts = [jax.tree.map(lambda n: jnp.broadcast_to(n, (1,) + n.shape), none)] + [p for p in parts if p is not None]
+    ks = jax.tree.map(lambda *k: jnp.concatenate(k), *parts)
     runs = _runs(model, controller, rp, ks)
     st = jax.vmap(stats)(runs)
     obj = _objective(st, jax.tree.map(lambda t: t[0], st), w)

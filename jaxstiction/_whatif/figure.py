@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .._drawing import C_CLOSE, C_MEAS, C_MODEL, C_OPEN, figure
+from .report import compensator_words
 
 
 C_REPAIRED = "tab:green"
@@ -33,7 +34,8 @@ def write_whatif_figure(name: str, ts: float, traces: dict, entry: dict, path) -
     hi = max(np.percentile(e[start:], 99.5) for e in errors.values()) if start < sp.shape[0] else 1
     pad = 0.1 * (hi - lo if hi > lo else 1.0)
     titles = {"as_is": ("as is (fitted valve)", C_MEAS), "repaired": ("repaired (linear valve)", C_REPAIRED),
-              "compensated": ("compensated (knocker)", C_COMPENSATED)}
+              "compensated": (f"compensated ({(entry.get('compensator') or {}).get('kind', 'knocker')})",
+                              C_COMPENSATED)}
     for i, (s, (title, color)) in enumerate(titles.items()):
         ax = fig.add_subplot(grid[0, i])
         ax.plot(t, errors[s], color=color, lw=0.7)
@@ -49,7 +51,7 @@ def write_whatif_figure(name: str, ts: float, traces: dict, entry: dict, path) -
         ax.grid(alpha=0.3)
         axv = fig.add_subplot(grid[1, i])
         if s == "compensated":
-            axv.plot(t, np.asarray(traces["op_compensated"], float), color="0.7", lw=0.5, label="OP + pulses")
+            axv.plot(t, np.asarray(traces["op_compensated"], float), color="0.7", lw=0.5, label="OP + compensator")
         axv.plot(t, np.asarray(traces[f"valve_{s}"], float), color=color, lw=0.9, label="valve")
         travel, rev = entry.get(f"travel_{s}"), entry.get(f"reversals_{s}")
         if travel is not None:
@@ -73,26 +75,25 @@ def write_whatif_figure(name: str, ts: float, traces: dict, entry: dict, path) -
 
 
 def write_compensation_figure(name: str, ts: float, sp, c, payload: dict, path) -> Path:
-    """A knocker's design on one page: SP − PV as is, compensated and repaired, and
-    OP with the knocker's pulses. `c`: an unbatched `Compensation`."""
+    """A compensator's design on one page: SP − PV as is, compensated and repaired,
+    and OP with the compensator added. `c`: an unbatched `Compensation`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     sp = np.asarray(sp, float)
     t = np.arange(sp.shape[0]) * ts
     fig = figure((11.0, 6.0))
     ax = fig.add_subplot(2, 1, 1)
-    for key, label, color in (("pv_as_is", "as is", C_MEAS), ("pv_compensated", "with the knocker", C_COMPENSATED),
+    for key, label, color in (("pv_as_is", "as is", C_MEAS), ("pv_compensated", "compensated", C_COMPENSATED),
                               ("pv_repaired", "repaired", C_REPAIRED)):
         ax.plot(t, sp - np.asarray(getattr(c, key), float), lw=0.7, color=color, label=label)
     ax.set_ylabel("SP − PV")
     ax.legend(fontsize=8, loc="upper right")
     ax.grid(alpha=0.3)
     k = payload["compensator"]
-    ax.set_title(f"{name}: knocker a = {k['amplitude']:.3g} %, width {k['width_samples']}, period "
-                 f"{k['period_samples']} samples: std(SP − PV) {payload['error_std_as_is']:.3g} → "
+    ax.set_title(f"{name}: {compensator_words(k)}: std(SP − PV) {payload['error_std_as_is']:.3g} → "
                  f"{payload['error_std_compensated']:.3g} (repaired {payload['error_std_repaired']:.3g})", fontsize=9)
     ax2 = fig.add_subplot(2, 1, 2, sharex=ax)
-    ax2.plot(t, np.asarray(c.op_compensated, float), color=C_COMPENSATED, lw=0.6, label="OP + pulses")
+    ax2.plot(t, np.asarray(c.op_compensated, float), color=C_COMPENSATED, lw=0.6, label="OP + compensator")
     ax2.set_xlabel("time (s)")
     ax2.set_ylabel("OP (% of span)")
     ax2.set_title(f"valve travel {payload['travel_as_is']:.0f} → {payload['travel_compensated']:.0f} % of span per "

@@ -37,10 +37,20 @@ def controller_json(c, ts: float) -> dict:
 
 def knocker_json(k, ts: float, method: str) -> dict:
     """The `compensator` object of a knocker (amplitude in % of span, width and
-    period in samples and seconds)."""
+    period in samples and seconds); `kind` is `"constant reinforcement"` for the
+    knocker whose pulse never ends (period 1)."""
     width, period = int(round(_f(k.width))), int(np.asarray(k.period))
-    return {"kind": "knocker", "method": method, "amplitude": _r(k.amplitude), "width_samples": width,
+    kind = "constant reinforcement" if period == 1 else "knocker"
+    return {"kind": kind, "method": method, "amplitude": _r(k.amplitude), "width_samples": width,
             "period_samples": period, "width_s": _r(width * ts), "period_s": _r(period * ts)}
+
+
+def compensator_words(k: dict) -> str:
+    """A `compensator` object in words, for the command line and the pictures."""
+    if k["kind"] == "constant reinforcement":
+        return f"constant reinforcement of {k['amplitude']:.3g} % of span in the direction OP last moved"
+    return (f"knocker: pulses of {k['amplitude']:.3g} % of span, {k['width_samples']} sample(s) wide, every "
+            f"{k['period_samples']} samples")
 
 
 def _stats(s, i=None) -> dict:
@@ -49,11 +59,12 @@ def _stats(s, i=None) -> dict:
                                              "travel", "reversals")}
 
 
-NO_KNOCKER = ("no knocker of the grid reduces the variability of this loop at the fitted valve and at its "
-              "neighbours (CompensateSettings.robust_S, robust_J): none is recommended")
-PARKED = ("the knocker's predicted gain comes from a valve that stays parked at one position (travel {travel:.3g} "
-          "against {travel0:.3g} % of span per hour as is): it holds only while the load does not move the balance "
-          "point, so treat it as optimistic")
+NO_KNOCKER = ("no compensator of the grid (knocks and constant reinforcement) reduces the variability of this "
+              "loop at the fitted valve and at its neighbours (CompensateSettings.robust_S, robust_J): none is "
+              "recommended")
+PARKED = ("the compensator's predicted gain comes from a valve that stays parked at one position (travel "
+          "{travel:.3g} against {travel0:.3g} % of span per hour as is): it holds only while the load does not move "
+          "the balance point, so treat it as optimistic")
 
 
 def _parked(travel_comp: float, travel_as_is: float) -> bool:

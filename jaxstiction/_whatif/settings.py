@@ -18,26 +18,36 @@ class KnockerGrid(eqx.Module):
       any size;
     - `widths`: pulse widths, in samples;
     - `periods`: pulse periods, in samples (pairs with a period shorter than twice
-      the width are left out: a knocker whose pulses touch is a bias, not a knock).
+      the width are left out: a knocker whose pulses touch is a bias, not a knock);
+    - `reinforcement`: amplitudes, as multiples of S, of constant reinforcement (a
+      bias of that size added to OP in the direction of its last move, every sample:
+      the knocker with width and period 1; Ivan and Lakshminarayanan 2009), searched
+      beside the knocks; `()` for knocks only.
     """
 
     amplitudes: tuple = eqx.field(static=True, default=(0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0, 1.3))
     widths: tuple = eqx.field(static=True, default=(1, 2, 3))
     periods: tuple = eqx.field(static=True, default=(2, 3, 4, 5, 6, 8, 10, 14, 20))
+    reinforcement: tuple = eqx.field(static=True, default=(0.3, 0.4, 0.45, 0.5, 0.55, 0.6))
 
     def __check_init__(self):
         if not self.amplitudes or any(not (isinstance(a, (int, float)) and a > 0) for a in self.amplitudes):
             raise ValueError(f"`KnockerGrid.amplitudes` must be positive numbers, got {self.amplitudes!r}")
+        if any(isinstance(a, bool) or not (isinstance(a, (int, float)) and a > 0) for a in self.reinforcement):
+            raise ValueError(f"`KnockerGrid.reinforcement` must be positive numbers, got {self.reinforcement!r}")
         for name in ("widths", "periods"):
             v = getattr(self, name)
             if not v or any(isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in v):
                 raise ValueError(f"`KnockerGrid.{name}` must be whole numbers >= 1, got {v!r}")
         if not self.points():
-            raise ValueError("`KnockerGrid` has no (width, period) pair with period >= 2 x width")
+            raise ValueError("`KnockerGrid` has no candidate: no (width, period) pair with period >= 2 x width "
+                             "and no `reinforcement`")
 
     def points(self) -> tuple[tuple[float, int, int], ...]:
-        """Every `(amplitude factor, width, period)` of the grid."""
-        return tuple((a, w, h) for a in self.amplitudes for w in self.widths for h in self.periods if h >= 2 * w)
+        """Every `(amplitude factor, width, period)` of the grid, the knocks first,
+        then constant reinforcement (width and period 1)."""
+        knocks = tuple((a, w, h) for a in self.amplitudes for w in self.widths for h in self.periods if h >= 2 * w)
+        return knocks + tuple((a, 1, 1) for a in self.reinforcement)
 
 
 class CompensateSettings(eqx.Module):
