@@ -224,7 +224,8 @@ def smooth_objective(model: LoopModel, controller: Controller, rp: Replay, mask,
 class Compensation(eqx.Module):
     """Result of [`jaxstiction.compensate`][] (arrays; a leading axis when batched).
 
-    - `knocker`: the designed [`jaxstiction.Knocker`][]; `method`: 0 grid, 1 gradient;
+    - `knocker`: the designed [`jaxstiction.Knocker`][] (period 1: constant
+      reinforcement); `method`: 0 grid, 1 gradient;
     - `controller`: the controller it was designed with;
     - `error_std_as_is`, `error_std_compensated`, `error_std_repaired`: the standard
       deviation of SP − PV of the fitted loop replayed as is, with the knocker, and

@@ -9,8 +9,8 @@ For a loop with a fitted Kano valve and process ([`jaxstiction.LoopFit`][]`.phys
    output for the innovations recovered from the record (`replay`);
 3. the loop is closed again in simulation under that same disturbance and setpoint,
    three ways: **as is** (the fitted Kano valve), **repaired** (a linear valve: S =
-   J = 0, the same process), and **compensated** (the fitted valve with a knocker
-   designed on this loop, [`jaxstiction.compensate`][]);
+   J = 0, the same process), and **compensated** (the fitted valve with a knocker or
+   constant reinforcement designed on this loop, [`jaxstiction.compensate`][]);
 4. the same is repeated for models drawn around the fit (S and J on their intervals,
    the process from its asymptotic distribution; `uncertainty`) for the intervals.
 
@@ -45,8 +45,8 @@ class WhatIf(eqx.Module):
     """Result of [`jaxstiction.whatif`][] (arrays; a leading axis when batched).
 
     - `controller`: the [`jaxstiction.Controller`][] used (identified or given);
-      `knocker`: the designed [`jaxstiction.Knocker`][]; `objective`: its design
-      objective;
+      `knocker`: the designed compensator, a [`jaxstiction.Knocker`][] (period 1:
+      constant reinforcement); `objective`: its design objective;
     - `as_is`, `repaired`, `compensated`: [`LoopStats`][jaxstiction.LoopStats] of the
       fitted loop replayed three ways (engineering units; travel in % of span per
       hour, reversals per hour); `recorded`: the record's own (its valve travel is
@@ -336,7 +336,8 @@ def _whatif_model(model: LoopModel, loop: Loop, S_interval, J_interval, settings
 def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = CompensateSettings(), *,
                 controller: Controller | None = None, init_count: int = 32,
                 reversal_threshold: float = 0.1, min_samples: int = 200, refine: bool = True) -> Compensation:
-    r"""Design a knocker for one loop on its identified closed loop (see
+    r"""Design a compensator (a knocker or constant reinforcement) for one loop on its
+    identified closed loop (see
     `jaxstiction._whatif.compensate`).
 
     **Arguments:** `fit`, `loop`, `controller` as for [`jaxstiction.whatif`][];
@@ -344,7 +345,7 @@ def _compensate(fit: LoopFit, loop: Loop, settings: CompensateSettings = Compens
     `method="grid"` or `"gradient"`); `init_count`, `reversal_threshold`,
     `min_samples` and `refine` as in [`jaxstiction.WhatIfSettings`][].
 
-    **Returns:** a [`jaxstiction.Compensation`][]: the knocker, the predicted
+    **Returns:** a [`jaxstiction.Compensation`][]: the compensator, the predicted
     variability with and without it (and with a repaired valve), and the extra
     travel it costs. Pure and jitted; vmappable over loops.
 
