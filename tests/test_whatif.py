@@ -435,6 +435,8 @@ def test_bad_input_is_one_line():
                         (lambda: whatif_model(nominal_model(), loop, None, None), "Kano valve"),
                         (lambda: WhatIfSettings(level=1.5), "level"),
                         (lambda: KnockerGrid(widths=(0,)), "widths"),
+                        (lambda: KnockerGrid(reinforcement=(0.0,)), "reinforcement"),
+                        (lambda: KnockerGrid(reinforcement=0.5), "reinforcement"),
                         (lambda: CompensateSettings(method="newton"), "method"),
                         (lambda: CompensateSettings(robust_S=1.5), "robust_S")):
         with pytest.raises(ValueError, match=match) as info:

@@ -33,8 +33,10 @@ class KnockerGrid(eqx.Module):
     def __check_init__(self):
         if not self.amplitudes or any(not (isinstance(a, (int, float)) and a > 0) for a in self.amplitudes):
             raise ValueError(f"`KnockerGrid.amplitudes` must be positive numbers, got {self.amplitudes!r}")
-        if any(isinstance(a, bool) or not (isinstance(a, (int, float)) and a > 0) for a in self.reinforcement):
-            raise ValueError(f"`KnockerGrid.reinforcement` must be positive numbers, got {self.reinforcement!r}")
+        if not isinstance(self.reinforcement, tuple) or any(
+                isinstance(a, bool) or not (isinstance(a, (int, float)) and a > 0) for a in self.reinforcement):
+            raise ValueError(f"`KnockerGrid.reinforcement` must be a tuple of positive numbers, got "
+                             f"{self.reinforcement!r}")
         for name in ("widths", "periods"):
             v = getattr(self, name)
             if not v or any(isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in v):
