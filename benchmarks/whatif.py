@@ -63,7 +63,6 @@ from jaxstiction import (  # noqa: E402
     Controller,
     estimate,
     Kano,
-    Knocker,
     KnockerGrid,
     make_loop,
     Settings,
@@ -75,6 +74,7 @@ from jaxstiction.internal import (  # noqa: E402
     closed_loop,
     fleet_draw,
     FLEET_RUN_IN,
+    grid_knockers,
     nominal_model,
     pad,
     realistic_fleet,
@@ -199,6 +199,7 @@ def _fleet_loop(p, r, load, out, knock):
 
 
 _fleet_run = jax.jit(_fleet_loop)
+_fleet_runs = jax.jit(jax.vmap(_fleet_loop, in_axes=(None, None, None, None, (0, 0, 0))))
 
 
 class Fleet:
@@ -212,9 +213,13 @@ class Fleet:
         self.kind = f"{'integrating' if loop.integrating else 'self-regulating'}, delay {loop.delay}" + (
             f", {'+'.join(h[0] for h in loop.historian)}" if loop.historian else "")
 
-    def truth(self, S=None, J=None, knocker=None):
+    def _params(self):
         p = {k: jnp.asarray(np.asarray(v, float)) for k, v in self.params.items()}
         p["delay"] = p["delay"].astype(jnp.int32)
+        return p
+
+    def truth(self, S=None, J=None, knocker=None):
+        p = self._params()
         if S is not None:
             p["S"], p["J"] = jnp.asarray(S), jnp.asarray(J)
         knock = (0.0, 1.0, 2) if knocker is None else (knocker.amplitude, knocker.width, knocker.period)
@@ -226,11 +231,8 @@ class Fleet:
         return self.loop.op, self.loop.pv, self.loop.sp, 1.0
 
     def truths(self, knockers):
-        p = {k: jnp.asarray(np.asarray(v, float)) for k, v in self.params.items()}
-        p["delay"] = p["delay"].astype(jnp.int32)
-        run = jax.vmap(lambda a, w, h: _fleet_loop(p, jnp.asarray(self.r), jnp.asarray(self.load),
-                                                   jnp.asarray(self.out), (a, w, h)))
-        _, pv, v = jax.jit(run)(knockers.amplitude, knockers.width, knockers.period)
+        _, pv, v = _fleet_runs(self._params(), jnp.asarray(self.r), jnp.asarray(self.load), jnp.asarray(self.out),
+                               (knockers.amplitude, knockers.width, knockers.period))
         cut = slice(FLEET_RUN_IN, FLEET_RUN_IN + self.n)
         return np.asarray(pv)[:, cut] + 50.0, np.asarray(v)[:, cut]
 
@@ -308,6 +310,10 @@ CEILING_GRID = KnockerGrid(amplitudes=(0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1
 CEILING_CAPS = (2.0, 5.0, 20.0, np.inf)
 
 
+def _cap_tag(cap) -> str:
+    return "any" if np.isinf(cap) else f"{cap:g}"
+
+
 def ceiling_loop(case) -> dict:
     """The best share of a repair's reduction in std(SP - PV) that any compensator of
     `CEILING_GRID` (amplitudes times the true S) reaches on the true plant, with the
@@ -315,8 +321,7 @@ def ceiling_loop(case) -> dict:
     _, pv_t, valve_t, sp = case.truth()
     _, pv_l, valve_l, _ = case.truth(0.0, 0.0)
     pts = CEILING_GRID.points()
-    ks = Knocker(amplitude=jnp.asarray([p[0] * case.S for p in pts]), width=jnp.asarray([float(p[1]) for p in pts]),
-                 period=jnp.asarray([p[2] for p in pts], jnp.int32))
+    ks = grid_knockers(case.S, case.J, CompensateSettings(grid=CEILING_GRID))
     pv_k, valve_k = map(np.asarray, case.truths(ks))
     asis, rep = float(np.std(sp - pv_t)), float(np.std(sp - pv_l))
     travel0 = float(np.sum(np.abs(np.diff(valve_t))))
@@ -327,7 +332,7 @@ def ceiling_loop(case) -> dict:
     for cap in CEILING_CAPS:
         ok = np.isfinite(share) & (ratio <= cap)
         i = int(np.argmax(np.where(ok, share, -np.inf)))
-        tag = "any" if np.isinf(cap) else f"{cap:g}"
+        tag = _cap_tag(cap)
         out[f"best_{tag}"] = float(share[i]) if ok.any() else float("nan")
         out[f"best_{tag}_at"] = [round(pts[i][0], 3), pts[i][1], pts[i][2], round(float(ratio[i]), 2)]
     return out
@@ -339,9 +344,8 @@ def ceiling_summary(rows) -> dict:
         sel = [r for r in rows if kind == "all" or r["kind"] == kind]
         res[kind] = {
             ("any" if np.isinf(c) else f"travel<={c:g}x"): dict(
-                at_least_half=int(sum(r[f"best_{'any' if np.isinf(c) else f'{c:g}'}"] >= 0.5 for r in sel)),
-                loops=len(sel),
-                median=float(np.nanmedian([r[f"best_{'any' if np.isinf(c) else f'{c:g}'}"] for r in sel])))
+                at_least_half=int(sum(r[f"best_{_cap_tag(c)}"] >= 0.5 for r in sel)), loops=len(sel),
+                median=float(np.nanmedian([r[f"best_{_cap_tag(c)}"] for r in sel])))
             for c in CEILING_CAPS}
     return res
 
@@ -414,7 +418,8 @@ def main():
             if not args.json:
                 r = rows[-1]
                 print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f} J {r['J']:5.2f}  best share of a repair "
-                      + ", ".join(f"{t}: {r[f'best_{t}']:.2f} at {r[f'best_{t}_at']}" for t in ("2", "5", "20", "any")),
+                      + ", ".join(f"{t}: {r[f'best_{t}']:.2f} at {r[f'best_{t}_at']}"
+                                  for t in map(_cap_tag, CEILING_CAPS)),
                       flush=True)
         res = ceiling_summary(rows)
         res["set"], res["seeds"] = args.set, seeds_text(args.seeds)

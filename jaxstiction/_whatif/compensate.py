@@ -78,29 +78,29 @@ def _objective(stats: LoopStats, base: LoopStats, weight: float):
     return jnp.where(jnp.isfinite(e) & jnp.isfinite(t), e + weight * t, jnp.inf)
 
 
+def _knockers(points, S) -> Knocker | None:
+    """`(amplitude factor, width, period)` points as a batch of exact knockers, the
+    amplitudes multiples of `S`; `None` for no points."""
+    if not points:
+        return None
+    dtype = jnp.result_type(S)
+    fa = jnp.asarray([p[0] for p in points], dtype)
+    width = jnp.asarray([p[1] for p in points], dtype)
+    period = jnp.asarray([p[2] for p in points], jnp.int32)
+    return Knocker(amplitude=fa * jnp.maximum(S, 1e-3), width=width, period=period)
+
+
 def grid_knockers(S, J, settings: CompensateSettings) -> Knocker:
     """Every grid point as a batch of exact knockers; amplitudes are multiples of
     `S` (the fitted band: the OP step that moves a stuck valve either way is at most
     S)."""
-    pts = settings.grid.points()
-    dtype = jnp.result_type(S)
-    fa = jnp.asarray([p[0] for p in pts], dtype)
-    width = jnp.asarray([p[1] for p in pts], dtype)
-    period = jnp.asarray([p[2] for p in pts], jnp.int32)
-    scale = jnp.maximum(S, 1e-3)
-    return Knocker(amplitude=fa * scale, width=width, period=period)
+    return _knockers(settings.grid.points(), S)
 
 
-def reinforcement_knockers(S, settings: CompensateSettings) -> Knocker:
+def reinforcement_knockers(S, settings: CompensateSettings) -> Knocker | None:
     """The grid's constant reinforcement (`KnockerGrid.reinforcement` times `S`) as
     knockers of width and period 1; `None` when the grid has none."""
-    fa = settings.grid.reinforcement
-    if not fa:
-        return None
-    dtype = jnp.result_type(S)
-    n = len(fa)
-    return Knocker(amplitude=jnp.asarray(fa, dtype) * jnp.maximum(S, 1e-3), width=jnp.ones((n,), dtype),
-                   period=jnp.ones((n,), jnp.int32))
+    return _knockers(settings.grid.reinforcement_points(), S)
 
 
 def no_knock(dtype) -> Knocker:

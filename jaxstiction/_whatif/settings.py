@@ -49,7 +49,11 @@ class KnockerGrid(eqx.Module):
         """Every `(amplitude factor, width, period)` of the grid, the knocks first,
         then constant reinforcement (width and period 1)."""
         knocks = tuple((a, w, h) for a in self.amplitudes for w in self.widths for h in self.periods if h >= 2 * w)
-        return knocks + tuple((a, 1, 1) for a in self.reinforcement)
+        return knocks + self.reinforcement_points()
+
+    def reinforcement_points(self) -> tuple[tuple[float, int, int], ...]:
+        """The constant reinforcement as `(amplitude factor, 1, 1)` points."""
+        return tuple((a, 1, 1) for a in self.reinforcement)
 
 
 class CompensateSettings(eqx.Module):
