@@ -6,6 +6,8 @@ Every loop here is short (a few hundred samples) and every what-if runs with a s
 knocker grid and few draws, so the file compiles a handful of programs and runs in
 well under a minute."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -337,13 +339,16 @@ def test_knocker_design_is_the_worst_over_the_valve_neighbours():
         return loop_stats(run.pv, rp.sp_stat, run.valve, p.window, p.ts, SMALL.reversal_threshold)
 
     none = Knocker(amplitude=0.0, width=1.0, period=2)
-    worst = 0.0
+    worst, least_gain = 0.0, 1.0
     for S, J in ((4.0, 1.5), (3.88, 1.5), (4.12, 1.5), (4.0, 1.1), (4.0, 1.9)):
         m = with_valve(plant, jnp.asarray(S), jnp.asarray(J))
         k, n = stats(m, d.knocker), stats(m, none)
         obj = float(k.error_std / n.error_std + settings.travel_weight * k.travel / n.travel)
         worst = max(worst, obj)
+        least_gain = min(least_gain, 1 - float(k.error_std / n.error_std))
     assert float(d.knocker.amplitude) > 0
+    # the chosen knocker lowers the error by `min_gain` at least on every valve
+    assert least_gain >= settings.min_gain
     assert float(d.objective) == pytest.approx(worst, rel=1e-9)
     assert float(d.objective) == pytest.approx(float(jnp.min(d.grid_objective)), rel=1e-12)
     assert float(d.objective) < 1 + settings.travel_weight
@@ -353,6 +358,11 @@ def test_knocker_design_is_the_worst_over_the_valve_neighbours():
     assert float(d.knocker.amplitude) == 0 and float(d.objective) == pytest.approx(1 + hurts.travel_weight)
     assert float(d.compensated.error_std) == pytest.approx(float(p.as_is_stats.error_std), rel=1e-12)
     assert float(d.grid_objective[0]) > 1 + hurts.travel_weight
+    # a gain no knocker buys everywhere: none is chosen, however good its objective
+    greedy = dataclasses.replace(settings, min_gain=0.99)
+    d = design_knocker(plant, ctrl, p.replay, p.window, p.ts, p.as_is_stats, greedy, SMALL.reversal_threshold)
+    assert float(d.knocker.amplitude) == 0 and float(d.objective) == pytest.approx(1 + greedy.travel_weight)
+    assert float(jnp.min(d.grid_objective)) < 1 + greedy.travel_weight
 
 
 def test_no_setpoint_is_a_constant_setpoint():
@@ -438,7 +448,8 @@ def test_bad_input_is_one_line():
                         (lambda: KnockerGrid(reinforcement=(0.0,)), "reinforcement"),
                         (lambda: KnockerGrid(reinforcement=0.5), "reinforcement"),
                         (lambda: CompensateSettings(method="newton"), "method"),
-                        (lambda: CompensateSettings(robust_S=1.5), "robust_S")):
+                        (lambda: CompensateSettings(robust_S=1.5), "robust_S"),
+                        (lambda: CompensateSettings(min_gain=1.0), "min_gain")):
         with pytest.raises(ValueError, match=match) as info:
             call()
         assert "\n" not in str(info.value)

@@ -123,8 +123,9 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
     under the replay `rp`; `base`: the as-is run's stats (the objective's scale on
     the fitted valve). Each candidate is scored by its worst objective over the
     fitted valve and its neighbours (`valve_neighbours`), each against its own run
-    without a knocker; no knocker (objective 1 + w) is chosen when no candidate
-    beats it."""
+    without a knocker; a candidate that does not lower the error's standard
+    deviation by `settings.min_gain` on every one of them is not chosen. No knocker
+    (objective 1 + w) is chosen when no candidate qualifies and beats it."""
     S, J = model.chain[0].S, model.chain[0].J
     w = settings.travel_weight
 
@@ -142,14 +143,21 @@ def design_knocker(model: LoopModel, controller: Controller, rp: Replay, mask, t
     ks = jax.tree.map(lambda *k: jnp.concatenate(k), *parts)
     runs = _runs(model, controller, rp, ks)
     st = jax.vmap(stats)(runs)
-    obj = _objective(st, jax.tree.map(lambda t: t[0], st), w)
+
+    def scored(s):  # the objective, and whether the error falls by `min_gain` at least
+        none_s = jax.tree.map(lambda t: t[0], s)
+        gains = s.error_std <= (1.0 - settings.min_gain) * none_s.error_std
+        return _objective(s, none_s, w), gains
 
     def on_neighbour(m):
-        nst = jax.vmap(stats)(_runs(m, controller, rp, ks))
-        return _objective(nst, jax.tree.map(lambda t: t[0], nst), w)
+        return scored(jax.vmap(stats)(_runs(m, controller, rp, ks)))
 
-    robust = jnp.maximum(obj, jnp.max(jax.vmap(on_neighbour)(valve_neighbours(model, settings)), axis=0))
-    i = first_min(robust)
+    obj, gains = scored(st)
+    n_obj, n_gains = jax.vmap(on_neighbour)(valve_neighbours(model, settings))
+    robust = jnp.maximum(obj, jnp.max(n_obj, axis=0))
+    # a knocker that does not buy `min_gain` everywhere is not a candidate (no knocker, first, stays)
+    enough = (gains & jnp.all(n_gains, axis=0)).at[0].set(True)
+    i = first_min(jnp.where(enough, robust, jnp.inf))
     pick = lambda t: t[i]  # noqa: E731
     knocker = jax.tree.map(pick, ks)
     return Design(knocker=knocker, objective=robust[i], grid_objective=robust[1:],

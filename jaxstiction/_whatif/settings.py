@@ -80,6 +80,13 @@ class CompensateSettings(eqx.Module):
       fit has S within 1 % of the valve's, the best knocker for the fitted band makes
       the true loop's variability six times the as-is, and the best for a band 3 %
       narrower cuts it by a quarter. 0 and 0: the fitted valve alone.
+    - `min_gain`: a knocker is chosen only when it lowers the standard deviation of
+      SP − PV by at least this share of the as-is one on the fitted valve and on
+      every neighbour: a knocker wears the valve, and a gain smaller than the
+      model's own error is no reason to fit one. On the realistic fleet (seeds
+      0–49) it withdraws 9 designs; on the true plants 6 of them bought nothing,
+      one bought 6 %, and two made the loop worse (by 17 %, and three times over
+      for a band fitted at 0.11 % for 8 %).
     """
 
     grid: KnockerGrid = KnockerGrid()
@@ -91,9 +98,12 @@ class CompensateSettings(eqx.Module):
     smooth: float = eqx.field(static=True, default=0.05)
     robust_S: float = eqx.field(static=True, default=0.03)
     robust_J: float = eqx.field(static=True, default=0.1)
+    min_gain: float = eqx.field(static=True, default=0.02)
 
     def __check_init__(self):
         check_counts(self, positive=("gradient_starts", "gradient_steps"))
+        if not 0 <= self.min_gain < 1:
+            raise ValueError(f"`CompensateSettings.min_gain` must be in [0, 1), got {self.min_gain!r}")
         if not (0 <= self.robust_S < 1 and 0 <= self.robust_J <= 1):
             raise ValueError("`CompensateSettings.robust_S` must be in [0, 1) and `robust_J` in [0, 1], got "
                              f"{self.robust_S!r} and {self.robust_J!r}")
