@@ -55,7 +55,9 @@ class Design(eqx.Module):
     - `objective`: its design objective (see the module notes; 1 + w for no knocker);
     - `grid_objective`: the objective of every candidate, the worst over the fitted
       valve and its neighbours (`inf` where a run is not finite;
-      `method="gradient"`: the gradient results' exact objectives);
+      `method="gradient"`: the gradient results' exact objectives); a candidate
+      that does not lower the error by `min_gain` everywhere keeps its objective
+      here but is not chosen;
     - `compensated`: [`LoopStats`] of the compensated run; `run`: the run itself.
     """
 
@@ -245,7 +247,8 @@ class Compensation(eqx.Module):
     - `travel_as_is`, `travel_compensated`, `travel_repaired` (% of span per hour),
       `reversals_as_is`, `reversals_compensated`, `reversals_repaired` (per hour);
     - `objective`: the design objective reached (the worst over the fitted valve and
-      its neighbours); `grid_objective`: every point's;
+      its neighbours); `grid_objective`: every point's, also of the points not
+      chosen for falling short of `CompensateSettings.min_gain`;
     - `pv_as_is`, `pv_compensated`, `pv_repaired`, `op_compensated`: the runs.
     """
 
