@@ -21,7 +21,11 @@ With `--whatif`, the same fleets are screened again with `ScreenSettings(whatif=
 WhatIfSettings())` (`screen --whatif`: every loop called sticky gets its what-if),
 after a warm-up of their own (which screens the paper's 1500-sample loop too, so
 that the what-if program compiles there), and the what-if's marginal cost is the difference of
-the two marginal costs, per screened loop and per loop called sticky.
+the two marginal costs, per screened loop and per loop called sticky. That
+difference carries the noise of two fleets' timings, a few tenths of a second per
+loop called sticky when few are; so the loops of the large fleet called sticky are
+also screened alone, with and without the what-if, alternately three times each,
+and the median difference per loop is the what-if's own cost per sticky loop.
 """
 
 import argparse
@@ -98,8 +102,29 @@ def marginal_cost(small=8, large=24, settings=ScreenSettings()) -> dict:
                 marginal_seconds_per_loop=marginal, ok=sum(r["status"] == "ok" for r in res), loops=len(res),
                 balanced_accuracy=0.5 * (tpr + tnr), sticky_small=sum(bool(r["stiction_detected"]) for r in r1),
                 sticky_large=sum(bool(r["stiction_detected"]) for r in r2),
+                sticky_names_large=[r["name"] for r in r2 if r.get("verdict") == "stiction"],
                 devices=len(jax.local_devices()), threads=settings.threads,
                 failed={r["name"]: r["status"] for r in res if r["status"] != "ok"})
+
+
+def sticky_only_cost(names, settings: ScreenSettings, with_whatif: ScreenSettings, repeats: int = 3) -> dict:
+    """The loops `names` of the fleet (those called sticky) screened alone with
+    `settings` and with `with_whatif`, alternately `repeats` times each (both warm):
+    the median of the paired differences per loop."""
+    offsets = [int(n.removeprefix("loop")) for n in names]
+    loops = {}
+    for i in offsets:
+        loops.update(fleet(1, i)[0])
+    diffs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        screen_loops(loops, settings)
+        t1 = time.perf_counter()
+        screen_loops(loops, with_whatif)
+        t2 = time.perf_counter()
+        diffs.append(((t2 - t1) - (t1 - t0)) / max(len(loops), 1))
+    return dict(loops=len(loops), seconds_per_sticky_loop=float(np.median(diffs)),
+                seconds_per_sticky_loop_all=diffs)
 
 
 def main():
@@ -116,13 +141,17 @@ def main():
     args = p.parse_args()
     settings = ScreenSettings(threads=args.threads, chunk=args.chunk)
     out = marginal_cost(args.small, args.large, settings)
+    out.pop("sticky_names_large")
     if args.whatif:
-        w = marginal_cost(args.small, args.large, ScreenSettings(threads=args.threads, chunk=args.chunk,
-                                                                 whatif=WhatIfSettings()))
+        w_settings = ScreenSettings(threads=args.threads, chunk=args.chunk, whatif=WhatIfSettings())
+        w = marginal_cost(args.small, args.large, w_settings)
         added = w["marginal_seconds_per_loop"] - out["marginal_seconds_per_loop"]
         more_sticky = w["sticky_large"] - w["sticky_small"]
         out["whatif"] = dict(w, added_seconds_per_loop=added,
                              added_seconds_per_sticky_loop=added * (args.large - args.small) / max(more_sticky, 1))
+        names = w.pop("sticky_names_large")
+        if names:
+            out["whatif"]["sticky_alone"] = sticky_only_cost(names, settings, w_settings)
     if args.json:
         print(json.dumps(out))
         return
@@ -140,6 +169,11 @@ def main():
         print(f"--whatif adds {w['added_seconds_per_loop']:.2f} s per screened loop, "
               f"{w['added_seconds_per_sticky_loop']:.2f} s per loop called sticky "
               f"(called sticky: {w['sticky_small']} of {args.small}, {w['sticky_large']} of {args.large})")
+        if "sticky_alone" in w:
+            a = w["sticky_alone"]
+            print(f"the {a['loops']} loops called sticky screened alone: --whatif adds "
+                  f"{a['seconds_per_sticky_loop']:.2f} s per loop (median of "
+                  f"{', '.join(f'{x:.2f}' for x in a['seconds_per_sticky_loop_all'])})")
 
 
 if __name__ == "__main__":
