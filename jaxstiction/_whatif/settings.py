@@ -151,7 +151,7 @@ class WhatIfSettings(eqx.Module):
       high-order ARX criterion, and refit the process on the polished valve's path at
       the fitted dead time and one sample either side; the least criterion is kept
       among the refits whose repaired replay does not run away. It makes a what-if
-      about six times as costly: 1.5 s against 0.24 s for one 1500-sample loop,
+      about 4.5 times as costly: 1.1 s against 0.24 s for one 1500-sample loop,
       unbatched, on a 2-core CPU.
     """
 
