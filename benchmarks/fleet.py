@@ -147,9 +147,9 @@ def main():
         w = marginal_cost(args.small, args.large, w_settings)
         added = w["marginal_seconds_per_loop"] - out["marginal_seconds_per_loop"]
         more_sticky = w["sticky_large"] - w["sticky_small"]
+        names = w.pop("sticky_names_large")
         out["whatif"] = dict(w, added_seconds_per_loop=added,
                              added_seconds_per_sticky_loop=added * (args.large - args.small) / max(more_sticky, 1))
-        names = w.pop("sticky_names_large")
         if names:
             out["whatif"]["sticky_alone"] = sticky_only_cost(names, settings, w_settings)
     if args.json:
