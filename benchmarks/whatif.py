@@ -9,6 +9,7 @@ setpoint.
     python benchmarks/whatif.py --set concealed --seeds 0-7 --design both       # grid against gradient
     python benchmarks/whatif.py --set concealed --seeds 0-49 --no-oracle --no-polish   # the refit without the polish
     python benchmarks/whatif.py --set concealed --seeds 0-49 --ceiling            # the best compensator on the truth
+    python benchmarks/whatif.py --set concealed --seeds 0-49 --no-oracle --true-valve  # the valve known
     python benchmarks/whatif.py ... --json
 
 Two sets of loops:
@@ -80,6 +81,7 @@ from jaxstiction.internal import (  # noqa: E402
     realistic_fleet,
     SCREEN_ESTIMATE,
     whatif_model,
+    with_valve,
 )
 
 
@@ -249,7 +251,8 @@ def spearman(x, y):
     return float(np.corrcoef(rx, ry)[0, 1])
 
 
-def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, designs=("grid",), padded=False):
+def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, designs=("grid",), padded=False,
+             true_valve=False):
     op, pv, sp, ts = case.record()
     loop, bare = make_loop(op, pv, ts, sp=sp), make_loop(op, pv, ts)
     if padded:  # as the screen does: one compiled program per length bucket
@@ -261,6 +264,10 @@ def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, desig
     t1 = time.perf_counter()
     out = dict(seed=case.seed, kind=case.kind, S=case.S, J=case.J, S_fit=float(fit.S), J_fit=float(fit.J),
                seconds_fit=t1 - t0)
+    if true_valve:  # the valve known: the plant's S and J in the fit, its intervals moved along
+        dS, dJ = case.S - fit.physical.chain[0].S, case.J - fit.physical.chain[0].J
+        fit = eqx.tree_at(lambda f: (f.physical, f.S_interval, f.J_interval), fit,
+                          (with_valve(fit.physical, case.S, case.J), fit.S_interval + dS, fit.J_interval + dJ))
     for design in designs:
         ws = eqx.tree_at(lambda s: s.compensate, wset, CompensateSettings(method=design))
         t1 = time.perf_counter()
@@ -401,6 +408,8 @@ def main():
     ap.add_argument("--pad", action="store_true",
                     help="pad each loop to the screen's length bucket (masked), so loops of many lengths share a "
                          "few compiled programs (the fleet)")
+    ap.add_argument("--true-valve", action="store_true",
+                    help="the plant's S and J in the fit before the what-if (the process still fitted)")
     ap.add_argument("--ceiling", action="store_true",
                     help="fit nothing: the best compensator of a wide grid on each true plant, by travel cap")
     ap.add_argument("--json", action="store_true")
@@ -428,7 +437,7 @@ def main():
     rows = []
     for c in cases:
         wset = WhatIfSettings(init_count=args.init_count, refine=not args.no_refine, polish=not args.no_polish)
-        r = one_loop(c, settings, wset, not args.no_oracle, designs, args.pad)
+        r = one_loop(c, settings, wset, not args.no_oracle, designs, args.pad, args.true_valve)
         rows.append(r)
         if not args.json:
             print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f} J {r['J']:5.2f}/"
@@ -445,6 +454,7 @@ def main():
     res = summary(rows, designs)
     res["set"], res["estimator"], res["seeds"] = args.set, args.estimator, seeds_text(args.seeds)
     res["init_count"], res["refine"], res["polish"] = args.init_count, not args.no_refine, not args.no_polish
+    res["true_valve"] = args.true_valve
     if args.json:
         print(json.dumps({"summary": res, "loops": rows}))
     else:
