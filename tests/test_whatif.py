@@ -258,6 +258,21 @@ def test_whatif_with_the_true_model_predicts_the_repaired_plant():
     assert js["controller"]["source"] == "given"
 
 
+def test_the_repaired_run_forgets_a_start_far_larger_than_its_error():
+    """Where a repair removes almost all the variability, the repaired run's transient
+    from the record's as-is start must fall below the repaired error's size, not only
+    to 5 % of its own peak: with the plant's own model the repaired prediction is
+    then the truth's (read from 5 % of the peak alone, this loop's is 7 % high)."""
+    plant, loop, sp, v = _plant_loop(3, S=8.0, J=7.9, steps=False)
+    ctrl = Controller(kp=jnp.asarray(KP), ki=jnp.asarray(KI))
+    nan2 = jnp.full((2,), jnp.nan)
+    w = whatif_model(plant, loop, nan2, nan2, dataclasses.replace(SMALL, draws=0), controller=ctrl)
+    _, _, _, pv_lin = reference_loop(0.0, 0.0, KP, KI, sp, v)
+    true_std = np.std((sp - pv_lin)[int(w.start):])
+    assert float(w.as_is.error_std) > 15 * true_std
+    assert abs(float(w.repaired.error_std) / true_std - 1) < 0.02
+
+
 def test_whatif_vmap_equals_single_calls():
     loops, models = [], []
     for seed, steps in ((4, True), (5, False)):

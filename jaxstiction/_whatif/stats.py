@@ -15,6 +15,11 @@ from .._models import LoopModel
 from .._verdict.indicators import cycle
 
 
+SETTLE_TOLERANCE = 0.05
+"""A loop has settled once its control error stays within this share of its peak
+(`settling_time`)."""
+
+
 class LoopStats(eqx.Module):
     """What one run (or the record) shows, over the real samples:
 
@@ -87,7 +92,7 @@ def loop_stats(pv, sp_stat, valve, mask, ts, threshold) -> LoopStats:
                      period=period, travel=travel, reversals=reversals)
 
 
-def settling_time(model: LoopModel, controller: Controller, op0, n: int, tolerance: float = 0.05) -> Array:
+def settling_time(model: LoopModel, controller: Controller, op0, n: int, tolerance=SETTLE_TOLERANCE) -> Array:
     """Samples the loop takes to forget how it started: the later of its settling
     after a step disturbance at its output and after an offset of its OP (a start
     whose controller output or process state differs from the truth's is both). Each

@@ -37,7 +37,7 @@ from .compensate import Compensation, design_knocker, METHODS, no_knock
 from .refine import refit_for_replay
 from .replay import Replay, replay, setpoints
 from .settings import CompensateSettings, WhatIfSettings
-from .stats import loop_stats, LoopStats, settling_time
+from .stats import loop_stats, LoopStats, SETTLE_TOLERANCE, settling_time
 from .uncertainty import draw_models, free_parameters
 
 
@@ -65,7 +65,10 @@ class WhatIf(eqx.Module):
       radius 1 + 1/n);
     - `start`: the first sample the numbers are read from, `sync` (the valve's path
       no longer depends on its unknown initial state, see `replay`) plus `settle`
-      (the repaired loop's settling time, `settling_time`), or, when that leaves
+      (the repaired loop's settling time, `settling_time`, to `SETTLE_TOLERANCE`
+      of its peak times the ratio of the repaired to the as-is error's standard
+      deviation: the repaired run starts from the record's as-is state, and its
+      transient must fall below the repaired error's size), or, when that leaves
       fewer than `min_samples`, the last `min_samples` samples (never before
       `sync`; `settled` is then false: the repaired run may still carry some of its
       start); `samples`: how many real samples that leaves; `enough`: stable, with
@@ -157,17 +160,35 @@ def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_c
     # the numbers are read once the valve's unknown start no longer shows and the
     # repaired loop has forgotten how it started (see `replay`)
     n = op.shape[0]
-    settle = settling_time(repaired_model, controller, op[0], n)
     # a slow repaired loop (an integrating process, a detuned PI) may settle for
     # longer than the record leaves: then the last `min_samples` valid samples are
     # read (never before `sync`), and `settled` is false
     last = jnp.max(jnp.where(mask > 0, jnp.arange(n) + 1, 0))
-    start = jnp.minimum(rp.sync + settle, jnp.maximum(rp.sync, last - min_samples))
-    start = jnp.minimum(start, n)
-    window = mask * (jnp.arange(n) >= start)
+
+    def window_after(settle):
+        start = jnp.minimum(rp.sync + settle, jnp.maximum(rp.sync, last - min_samples))
+        start = jnp.minimum(start, n)
+        return start, mask * (jnp.arange(n) >= start)
+
     none = no_knock(dtype)
     runs = _runs3(stack_trees(model, repaired_model), controller, rp, stack_trees(none, none))
-    stats = jax.vmap(lambda r: loop_stats(r.pv, rp.sp_stat, r.valve, window, ts, threshold))(runs)
+
+    def stats_in(window):
+        return jax.vmap(lambda r: loop_stats(r.pv, rp.sp_stat, r.valve, window, ts, threshold))(runs)
+
+    settle = settling_time(repaired_model, controller, op[0], n)
+    start, _ = window_after(settle)
+    # The repaired run starts from the record's (as-is) state, so its transient starts
+    # at the size of the as-is error, and must fall to a share of the repaired error's
+    # size, not of its own start: where a repair removes most of the variability, it
+    # settles to `SETTLE_TOLERANCE` of its peak times the repaired-to-as-is ratio,
+    # measured on the record's second half (which the first transient leaves alone).
+    tail = stats_in(mask * (jnp.arange(n) >= jnp.maximum(start, (rp.sync + last) // 2)))
+    ratio = tail.error_std[1] / tail.error_std[0]
+    ratio = jnp.where(jnp.isfinite(ratio), jnp.clip(ratio, 0.0, 1.0), 1.0)
+    settle = settling_time(repaired_model, controller, op[0], n, SETTLE_TOLERANCE * ratio)
+    start, window = window_after(settle)
+    stats = stats_in(window)
     first, second = (jax.tree.map(lambda t, i=i: t[i], (runs, stats)) for i in (0, 1))
     return _Prepared(model=model, controller=controller, replay=rp, mask=mask, window=window, start=start,
                      settle=settle, ts=ts, as_is=first[0], repaired=second[0], as_is_stats=first[1],
