@@ -31,7 +31,8 @@ Per loop: the fit (`--estimator screen`: the screen's `SCREEN_ESTIMATE`, what
 `fit --whatif`), `whatif` (default settings), and the truth over the same samples
 (from the what-if's `start`): the plant as recorded, with a linear valve, and with
 the designed knocker. Also `oracle`: `whatif_model` of the true plant model (the
-method with a perfect fit). Prints per loop and a summary: the share of loops whose
+method with a perfect fit). Prints per loop (S and J: the plant's, the fit's, and
+the ones replayed after the what-if's polish) and a summary: the share of loops whose
 `error_std_repaired` is within +-15 % of the truth (min, median, which seeds miss),
 Spearman's rho of predicted against true benefit, and the share of a repair's
 variability reduction that the knocker achieves on the true plant, with its travel.
@@ -300,6 +301,8 @@ def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, desig
             f"knocker{tag}": [float(w.knocker.amplitude), int(round(float(w.knocker.width))),
                               int(w.knocker.period)],
             f"objective{tag}": float(w.objective),
+            # the valve replayed: the fit's (or the plant's) after the what-if's polish
+            f"S_whatif{tag}": float(w.S), f"J_whatif{tag}": float(w.J),
         })
     if oracle and case.plant() is not None:
         w = jax.tree.map(np.asarray, whatif_model(case.plant(), loop, jnp.full(2, jnp.nan), jnp.full(2, jnp.nan),
@@ -440,8 +443,9 @@ def main():
         r = one_loop(c, settings, wset, not args.no_oracle, designs, args.pad, args.true_valve)
         rows.append(r)
         if not args.json:
-            print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f} J {r['J']:5.2f}/"
-                  f"{r['J_fit']:5.2f}  start {r['start']:4d}  as-is {r['asis']:.3g}/{r['true_asis']:.3g}  repaired "
+            print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f}/{r['S_whatif']:5.2f} J "
+                  f"{r['J']:5.2f}/{r['J_fit']:5.2f}/{r['J_whatif']:5.2f}  start {r['start']:4d}  "
+                  f"as-is {r['asis']:.3g}/{r['true_asis']:.3g}  repaired "
                   f"{r['rep']:.3g} [{r['rep_lo']:.3g}, {r['rep_hi']:.3g}] / true {r['true_rep']:.3g} "
                   f"({r['rep'] / r['true_rep'] - 1:+.1%})"
                   + (f" oracle {r['oracle_rep'] / r['oracle_true_rep'] - 1:+.1%}" if "oracle_rep" in r else "")
