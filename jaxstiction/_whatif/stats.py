@@ -92,24 +92,34 @@ def loop_stats(pv, sp_stat, valve, mask, ts, threshold) -> LoopStats:
                      period=period, travel=travel, reversals=reversals)
 
 
-def settling_time(model: LoopModel, controller: Controller, op0, n: int, tolerance=SETTLE_TOLERANCE) -> Array:
-    """Samples the loop takes to forget how it started: the later of its settling
-    after a step disturbance at its output and after an offset of its OP (a start
-    whose controller output or process state differs from the truth's is both). Each
-    is the last sample (of `n`) at which the control error is above `tolerance` of
-    its peak, plus one (`n` for a loop that does not settle within `n`). The loop
-    starts at rest at OP `op0` with the setpoint at its PV; the steps are small
-    (1e-6), so OP limits stay out of play."""
+def settling_errors(model: LoopModel, controller: Controller, op0, n: int) -> Array:
+    """The control error's magnitude (2, `n`) of the loop after a step disturbance at
+    its output and after an offset of its OP (a start whose controller output or
+    process state differs from the truth's is both). The loop starts at rest at OP
+    `op0` with the setpoint at its PV; the steps are small (1e-6), so OP limits stay
+    out of play."""
     dtype = jnp.result_type(op0, jnp.float32)
     initial = model.rest_state(jnp.full((n,), op0, dtype))
     sp = jnp.full((n,), initial.filter[0] + model.pv_offset, dtype)
     step = jnp.where(jnp.arange(n) >= 1, 1e-6, 0.0).astype(dtype)
-
-    def last_late(run):
-        e = jnp.abs(run.pv - sp)
-        late = ~(e <= tolerance * jnp.max(e))  # NaN (a loop that runs away) is late too
-        return jnp.max(jnp.where(late, jnp.arange(n) + 1, 0)).astype(jnp.int32)
-
     output = closed_loop(model, controller, sp, step, initial, op0)
     offset = closed_loop(model, controller, sp, jnp.zeros((n,), dtype), initial, op0 + 1e-6)
-    return jnp.maximum(last_late(output), last_late(offset))
+    return jnp.abs(jnp.stack([output.pv, offset.pv]) - sp)
+
+
+def settled_after(errors: Array, tolerance=SETTLE_TOLERANCE) -> Array:
+    """The later, over the rows of `errors` (`settling_errors`), of the last sample at
+    which the error is above `tolerance` of its peak, plus one (the record's length
+    for a loop that does not settle within it)."""
+    n = errors.shape[-1]
+    late = ~(errors <= tolerance * jnp.max(errors, axis=-1, keepdims=True))  # NaN (a runaway) is late too
+    return jnp.max(jnp.where(late, jnp.arange(n) + 1, 0)).astype(jnp.int32)
+
+
+def settling_time(model: LoopModel, controller: Controller, op0, n: int, tolerance=SETTLE_TOLERANCE) -> Array:
+    """Samples the loop takes to forget how it started: the later of its settling
+    after a step disturbance at its output and after an offset of its OP
+    (`settling_errors`), each the last sample (of `n`) at which the control error is
+    above `tolerance` of its peak, plus one (`n` for a loop that does not settle
+    within `n`)."""
+    return settled_after(settling_errors(model, controller, op0, n), tolerance)

@@ -37,7 +37,7 @@ from .compensate import Compensation, design_knocker, METHODS, no_knock
 from .refine import refit_for_replay
 from .replay import Replay, replay, setpoints
 from .settings import CompensateSettings, WhatIfSettings
-from .stats import loop_stats, LoopStats, SETTLE_TOLERANCE, settling_time
+from .stats import loop_stats, LoopStats, SETTLE_TOLERANCE, settled_after, settling_errors
 from .uncertainty import draw_models, free_parameters
 
 
@@ -65,7 +65,7 @@ class WhatIf(eqx.Module):
       radius 1 + 1/n);
     - `start`: the first sample the numbers are read from, `sync` (the valve's path
       no longer depends on its unknown initial state, see `replay`) plus `settle`
-      (the repaired loop's settling time, `settling_time`, to `SETTLE_TOLERANCE`
+      (the repaired loop's settling time, `settled_after`, to `SETTLE_TOLERANCE`
       of its peak times the ratio of the repaired to the as-is error's standard
       deviation: the repaired run starts from the record's as-is state, and its
       transient must fall below the repaired error's size), or, when that leaves
@@ -176,8 +176,9 @@ def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_c
     def stats_in(window):
         return jax.vmap(lambda r: loop_stats(r.pv, rp.sp_stat, r.valve, window, ts, threshold))(runs)
 
-    settle = settling_time(repaired_model, controller, op[0], n)
-    start, _ = window_after(settle)
+    # the repaired loop's response to a start unlike the truth's, simulated once
+    errors = settling_errors(repaired_model, controller, op[0], n)
+    start, _ = window_after(settled_after(errors))
     # The repaired run starts from the record's (as-is) state, so its transient starts
     # at the size of the as-is error, and must fall to a share of the repaired error's
     # size, not of its own start: where a repair removes most of the variability, it
@@ -186,7 +187,7 @@ def _prepare(model: LoopModel, loop: Loop, controller: Controller | None, init_c
     tail = stats_in(mask * (jnp.arange(n) >= jnp.maximum(start, (rp.sync + last) // 2)))
     ratio = tail.error_std[1] / tail.error_std[0]
     ratio = jnp.where(jnp.isfinite(ratio), jnp.clip(ratio, 0.0, 1.0), 1.0)
-    settle = settling_time(repaired_model, controller, op[0], n, SETTLE_TOLERANCE * ratio)
+    settle = settled_after(errors, SETTLE_TOLERANCE * ratio)
     start, window = window_after(settle)
     stats = stats_in(window)
     first, second = (jax.tree.map(lambda t, i=i: t[i], (runs, stats)) for i in (0, 1))
