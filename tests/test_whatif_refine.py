@@ -229,8 +229,10 @@ def test_refine_recovers_the_process_from_a_wrong_start():
         np.testing.assert_allclose(np.asarray(got)[:3], np.asarray(want)[:3], atol=0.1)
 
 
-def _reference_starts(x, pv, weights, b0, a0, shifts, order):
-    """`arx_starts` row by row with numpy's lstsq and scipy's lfilter."""
+def _reference_starts(x, pv, weights, b0, a0, shifts, order, levels=None, level_weights=None):
+    """`arx_starts` row by row with numpy's lstsq and scipy's lfilter (the ARX on
+    `x` and `pv` over `weights`, simulated on `levels` and the structure fitted over
+    `level_weights`, by default `x` and `weights`)."""
     from scipy.signal import lfilter as sp_lfilter
 
     n, nb, na = len(pv), len(b0), len(a0) - 1
@@ -242,8 +244,11 @@ def _reference_starts(x, pv, weights, b0, a0, shifts, order):
     X = np.array([[1.0] + [pv[t - k] for k in range(1, order + 1)] + [x[t - k] for k in range(1, order + 1)]
                   for t in r])
     th, *_ = np.linalg.lstsq(X, pv[r], rcond=None)
-    u = x - x[0]
+    levels = x if levels is None else levels
+    u = levels - levels[0]
     y = sp_lfilter(np.r_[0.0, th[order + 1:]], np.r_[1.0, -th[1:order + 1]], u)
+    if level_weights is not None:
+        weights = level_weights
     r = rows(max(nb, na))
     out = []
     for k in shifts:
@@ -315,3 +320,28 @@ def test_refine_vmap_equals_single_calls():
         assert bool(got[1]) == bool(one[1])
         for g, o in zip(got[0].process.polynomials(), one[0].process.polynomials()):
             np.testing.assert_allclose(np.asarray(g), np.asarray(o), rtol=1e-7, atol=1e-9)
+
+
+def test_differenced_arx_start_matches_a_plain_least_squares():
+    """With `difference`, the ARX is fitted to PV's and the valve path's first
+    differences (the same transfer function) and simulated on the levels, against
+    numpy and scipy row by row; on the plant's loop it is near the plant."""
+    plant, loop, _, _ = _plant_loop(3)
+    b, a = plant.process.polynomials()
+    model = with_process(plant, jnp.concatenate([b, jnp.zeros(2)]), a)
+    op, pv, w, initial = _prepared(model, loop)
+    w = w.at[200:210].set(0.0)
+    x = model.valve_path(op, initial)
+    starts, valid = arx_starts(model, x, pv, w, (0,), order=4, difference=True)
+    assert np.asarray(valid).tolist() == [True]
+    xn, pvn, wn = np.asarray(x), np.asarray(pv), np.asarray(w)
+    # differences of samples next to a gap are left out: one more lag of weights
+    wd = wn * np.r_[0.0, wn[:-1]]
+    dx, dpv = np.diff(xn, prepend=xn[0]), np.diff(pvn, prepend=pvn[0])
+    want = _reference_starts(dx, dpv, wd, np.asarray(model.process.polynomials()[0]), np.asarray(a), (0,), 4,
+                             levels=xn, level_weights=wn)
+    got_b, got_a = (np.asarray(p)[0] for p in jax.vmap(lambda m: m.process.polynomials())(starts))
+    np.testing.assert_allclose(got_b, want[0][0], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(got_a[:3], want[0][1], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(got_a[:3], [1.0, -1.5, 0.7], atol=0.1)
+    np.testing.assert_allclose(got_b[1:3], [1.0, 0.5], atol=0.25)
