@@ -380,7 +380,7 @@ def refit_for_replay(model: LoopModel, op, pv, mask, controller: Controller, sp_
                           initial, start, arx_initial)
     # one candidate at a time: Levenberg–Marquardt takes from 5 to 40 steps by
     # candidate, and a vmapped solve runs every member to the slowest one's count
-    # (0.76 s against 0.48 s for the eight, one 1500-sample loop)
+    # (0.76 s against 0.48 s for eight candidates, one 1500-sample loop)
     outs, _, _, losses = jax.lax.map(lambda mi: refine_process(mi[0], op, pv, mask, mi[1]),
                                      (candidates, jax.tree.map(lambda t: t[1:], starts)))
     # the candidates: the fit's valve, then the polished one at three dead times
