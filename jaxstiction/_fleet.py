@@ -9,9 +9,10 @@ record drawn at random:
   samples) or integrating (a level: an integrator with a lag), dead times of 1–20
   samples;
 - the controller: SIMC-tuned PI, detuned, on three loops in ten with little integral
-  action (an integral time 3–20 times SIMC's, as many plant loops run), or, for the
-  `tight` confounder, tuned until the loop is lightly damped (a complex pole pair of
-  modulus 0.93–0.985);
+  action (an integral time 3–20 times SIMC's, as many plant loops run), its gain
+  lowered only where the loop would be unstable; or, for the `tight` confounder,
+  tuned until the loop is lightly damped (an oscillatory pole, a complex pair or a
+  negative real pole, of modulus 0.93–0.985);
 - the setpoint: constant, a few steps, a ramp, or a binary noise;
 - disturbances: coloured measurement noise, a slowly wandering load at the process
   input and load steps, a slow drift at the output;
@@ -111,16 +112,55 @@ def _ar1(rng, n, pole):
 
 
 def _poles(a, b, d, kp, ki):
-    """(largest pole modulus, largest modulus of an oscillatory pole pair with a
-    period under 200 samples) of the closed loop."""
+    """(largest pole modulus, largest modulus of an oscillatory pole: a complex
+    pair with a period under 200 samples, or a negative real pole) of the closed
+    loop."""
     den = np.convolve(a, [1.0, -1.0])
     num = np.concatenate([np.zeros(d + 1), np.convolve(b, [kp + ki, -kp])])
     c = np.zeros(max(len(den), len(num)))
     c[: len(den)] += den
     c[: len(num)] += num
     z = np.roots(np.trim_zeros(c, "b"))
-    osc = z[(np.abs(z.imag) > 1e-6) & (np.abs(np.angle(z)) > 2 * np.pi / 200)]
+    osc = z[np.abs(np.angle(z)) > 2 * np.pi / 200]
     return float(np.max(np.abs(z))), float(np.max(np.abs(osc))) if osc.size else 0.0
+
+
+def _tune(a, b, d, kp, ratio, tight):
+    """The PI's gain, from `kp` (integral gain `kp * ratio`): lowered until the
+    closed loop is stable or, for a `tight` loop, searched (bisection on its
+    logarithm) until the loop is lightly damped, its largest oscillatory pole of
+    modulus 0.93–0.985.
+
+    Only instability lowers the gain: a slow pole near 1 (a slow integral action
+    on a slow or integrating process) is a controlled loop, and a smaller gain
+    would only slow it further."""
+
+    def state(k):
+        rho, osc = _poles(a, b, d, k, k * ratio)
+        if rho >= 1.0:
+            return 1
+        if not tight:
+            return 0
+        return -1 if osc < 0.93 else (1 if osc > 0.985 else 0)
+
+    s = state(kp)
+    if s == 0:
+        return kp
+    lo, hi = (kp, None) if s < 0 else (None, kp)
+    for _ in range(200):  # bracket: lo below the target, hi above it
+        if hi is None:
+            kp = lo * 1.5
+        elif lo is None:
+            kp = hi / 1.5
+        else:
+            kp = float(np.sqrt(lo * hi))
+        s = state(kp)
+        if s == 0:
+            return kp
+        lo, hi = (kp, hi) if s < 0 else (lo, kp)
+        if lo is not None and hi is not None and hi / lo < 1.0 + 1e-9:
+            break
+    return lo if lo is not None else kp
 
 
 def _draw(seed: int, kind: str | None):
@@ -154,16 +194,7 @@ def _draw(seed: int, kind: str | None):
     if rng.random() < 0.3:  # a proportional-heavy PI, as many plant loops run: little integral action
         ti *= rng.uniform(3.0, 20.0)
     kp, ratio = kc, 1.0 / max(ti, 1.0)
-    for _ in range(80):  # stable; lightly damped for `tight`
-        rho, osc = _poles(a, b, delay, kp, kp * ratio)
-        if rho >= 0.995:
-            kp *= 0.85
-        elif kind == "tight" and osc < 0.93:
-            kp *= 1.08
-        elif kind == "tight" and osc > 0.985:
-            kp *= 0.95
-        else:
-            break
+    kp = _tune(a, b, delay, kp, ratio, kind == "tight")
     S = J = 0.0
     if kind in ("stiction", "deadband"):
         S = float(np.exp(rng.uniform(0.0, np.log(10.0))))
