@@ -40,6 +40,8 @@ Printed:
 - the same figures with the probability fitted on the simulated fleet alone (no
   real record seen: a pure out-of-sample check on every real record).
 
+`--shipped` scores the shipped coefficients on the check seeds instead of those
+fitted in the run (the leave-one-out figures always refit).
 `--limit-cycle` fits and scores with one more feature, the reproduction of the
 limit-cycle check (`jaxstiction.internal.limit_cycle`, reported in each entry but not
 weighed by the shipped probability), and `--drop horch,ngi` (any features,
@@ -64,7 +66,7 @@ import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 import jaxstiction as js  # noqa: E402
-from jaxstiction.internal import FEATURES, fit_calibration, HARD, realistic_fleet, source_hash  # noqa: E402
+from jaxstiction.internal import CALIBRATION, FEATURES, fit_calibration, HARD, realistic_fleet, source_hash  # noqa: E402
 
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -291,6 +293,8 @@ def main():
                         help="share of the total weight carried by the real records (default 2/3)")
     parser.add_argument("--limit-cycle", action="store_true",
                         help="also fit on the limit-cycle check's reproduction (a measurement of what it would add)")
+    parser.add_argument("--shipped", action="store_true",
+                        help="score the shipped coefficients on the check seeds, instead of those fitted here")
     parser.add_argument("--drop", default="",
                         help="features left out, comma-separated (taken as missing everywhere: the fit gives them "
                              "no weight), to measure what they add")
@@ -304,6 +308,9 @@ def main():
     DROPPED = frozenset(dropped)
     if dropped and args.write:
         parser.error("--drop is a measurement: it cannot be combined with --write")
+    if args.shipped and (args.write or args.limit_cycle or dropped):
+        parser.error("--shipped scores the shipped coefficients: it cannot be combined with --write, "
+                     "--limit-cycle or --drop")
     if not 0 < args.real_share < 1:
         parser.error("--real-share must lie strictly between 0 and 1")
     REAL_SHARE = args.real_share
@@ -324,6 +331,9 @@ def main():
     for k, m, s, w in zip(COLUMNS, np.asarray(cal.mean), np.asarray(cal.scale), np.asarray(cal.weights)):
         print(f"  {k:20s} mean {m:8.4f} scale {s:8.4f} weight {w:8.4f}")
     print(f"  bias {float(cal.bias):.4f}")
+    if args.shipped:
+        cal = CALIBRATION
+        print("\nscored with the shipped coefficients (jaxstiction/_verdict/calibration.py), not the ones above")
     reliability(check, cal)
     report_sim(check, cal)
     report_real("Real records, the probability fitted on the fleet and the other real records:", sim, real, True)
