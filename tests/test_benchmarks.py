@@ -4,6 +4,7 @@ The scripts are not run in full here (minutes each); these checks catch what bro
 `calibrate_verdict.py` for a session unnoticed: a script whose options fell out of
 step with the library it calls."""
 
+import dataclasses
 import json
 import pathlib
 import runpy
@@ -91,3 +92,25 @@ def test_calibration_weights(balanced, monkeypatch):
         sticky = part[[bool(v) for v in y]].sum() / part.sum()
         assert sticky == pytest.approx(0.5 if balanced else sum(y) / len(y))
     assert cp.weights(sim, []).sum() == pytest.approx(5.0)
+
+
+def test_verdict_oracle(monkeypatch, capsys):
+    # the oracle's power is the non-central chi-square's, and a valve path equal to
+    # OP carries nothing beyond it (lambda 0 with the gain free)
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from scipy.stats import ncx2
+    from verdict_oracle import oracle_lambdas, power
+
+    from jaxstiction.internal import fleet_draw, realistic_fleet
+
+    for lam, t in ((0.5, 3.84), (9.0, 3.84), (40.0, 17.0)):
+        assert abs(float(power(lam, t)) - ncx2.sf(t, 1, lam)) < 1e-9
+    loop = realistic_fleet([3], "stiction")[0]
+    params = fleet_draw(3, "stiction")[0]
+    free, known = oracle_lambdas(loop, params)
+    assert free > 25.0 and known > 25.0
+    linear = dataclasses.replace(loop, valve=loop.op)
+    assert oracle_lambdas(linear, params)[0] < 1e-6
+    _run(monkeypatch, "verdict_oracle.py", "--seeds", "0-19")
+    out = capsys.readouterr().out
+    assert "oracle, free gain" in out and "oracle, known gain" in out
