@@ -1,6 +1,6 @@
 """What the realistic fleet's records can show at best: an oracle test of each sticky valve.
 
-    python benchmarks/verdict_oracle.py                      # check seeds 400-599, ~10 s
+    python benchmarks/verdict_oracle.py                      # check seeds 400-599, ~1 min
     python benchmarks/verdict_oracle.py --seeds 600-799 --loops
 
 The verdict's balanced accuracy on the realistic simulated fleet
