@@ -34,7 +34,7 @@ Two versions:
   elsewhere.
 
 The screen's hard gates (`jaxstiction.internal.gate_measures` with
-`VerdictSettings`' thresholds) stop a record that the historian compressed or
+`VerdictSettings`' thresholds, `_gate.hard_gated`) stop a record that the historian compressed or
 quantised coarsely, or whose OP sits at a stop, as `inconclusive` whatever the
 evidence; counted as not sticky, such a sticky valve is a miss for any detector that
 keeps them.
@@ -56,11 +56,11 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402
+from _gate import hard_gated  # noqa: E402
 from scipy.signal import lfilter  # noqa: E402
 from scipy.stats import norm  # noqa: E402
 
-import jaxstiction as js  # noqa: E402
-from jaxstiction.internal import fleet_draw, gate_measures, realistic_fleet  # noqa: E402
+from jaxstiction.internal import fleet_draw, realistic_fleet  # noqa: E402
 
 
 AR = 20  # order of the disturbance's whitening filter
@@ -104,15 +104,6 @@ def oracle_lambdas(loop, params):
     return lam(px, np.column_stack([pu, nuisance])), lam(px - pu, nuisance)
 
 
-def hard_gated(loop, settings=js.VerdictSettings()):
-    """Whether the screen's hard gates stop `loop` whatever the evidence (OP at a
-    stop, or a record compressed or coarsely quantised by the historian), by the
-    gate's own measures and thresholds."""
-    g = gate_measures(loop.op, loop.pv, loop.sp, np.ones(len(loop.pv)))
-    return bool(g.frozen or g.saturated > settings.max_saturated
-                or (g.compressed > settings.max_compressed and g.longest_flat <= settings.max_flat_run))
-
-
 def power(lam, t):
     """P(chi2_1(lam) > t)."""
     s = np.sqrt(np.asarray(lam))
@@ -139,7 +130,7 @@ def main():
         moving = np.abs(np.diff(loop.valve)) > 1e-9
         slips = int(np.sum(moving[1:] & ~moving[:-1]))
         free, known = oracle_lambdas(loop, fleet_draw(loop.seed, None)[0])
-        rows.append((loop.seed, slips, free, known, hard_gated(loop)))
+        rows.append((loop.seed, slips, free, known, hard_gated(loop.op, loop.pv, loop.sp)))
         if args.loops:
             print(f"  seed {loop.seed:4d}  slips {slips:4d}  lambda free gain {free:12.1f}  known gain {known:12.1f}"
                   f"  {'integrating' if loop.integrating else 'self-regulating'}, delay {loop.delay}, "

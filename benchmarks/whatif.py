@@ -59,6 +59,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _args import seeds_arg, seeds_text  # noqa: E402
+from _gate import hard_gated  # noqa: E402
 
 from jaxstiction import (  # noqa: E402
     CompensateSettings,
@@ -264,7 +265,7 @@ def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, desig
     jax.block_until_ready(fit.S)
     t1 = time.perf_counter()
     out = dict(seed=case.seed, kind=case.kind, S=case.S, J=case.J, S_fit=float(fit.S), J_fit=float(fit.J),
-               seconds_fit=t1 - t0)
+               seconds_fit=t1 - t0, gate_passes=not hard_gated(op, pv, sp))
     if true_valve:  # the valve known: the plant's S and J in the fit, its intervals moved along
         dS, dJ = case.S - fit.physical.chain[0].S, case.J - fit.physical.chain[0].J
         fit = eqx.tree_at(lambda f: (f.physical, f.S_interval, f.J_interval), fit,
@@ -380,6 +381,11 @@ def summary(rows, designs) -> dict:
     tb = np.array([r["true_asis"] - r["true_rep"] for r in rows])
     rng_ = np.array([r["pv_range"] for r in rows])
     res["ranking"] = dict(spearman_benefit=spearman(pb, tb), spearman_benefit_percent=spearman(pb / rng_, tb / rng_))
+    passes = np.array([r.get("gate_passes", True) for r in rows])
+    if not passes.all():  # the screen ranks only loops its hard gates let through
+        res["ranking"].update(gate_passes=int(passes.sum()),
+                              spearman_benefit_gate_passes=spearman(pb[passes], tb[passes]),
+                              within_15_gate_passes=int(np.sum(ok & passes)))
     for design in designs:
         tag = "" if design == "grid" else f"_{design}"
         share = np.array([(r[f"true_asis{tag}"] - r[f"true_comp{tag}"]) / (r[f"true_asis{tag}"] - r[f"true_rep{tag}"])
