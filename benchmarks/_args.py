@@ -1,4 +1,6 @@
-"""Command-line helpers shared by the benchmark scripts."""
+"""Helpers shared by the benchmark scripts: seed lists, and a valve's slip count."""
+
+import numpy as np
 
 
 def seeds_arg(text):
@@ -21,3 +23,9 @@ def seeds_text(seeds):
         parts.append(f"{seeds[i]}-{seeds[j]}" if j > i else f"{seeds[i]}")
         i = j + 1
     return ",".join(parts)
+
+
+def slip_count(valve) -> int:
+    """How many times a valve path starts to move after standing still (its slips)."""
+    moving = np.abs(np.diff(np.asarray(valve))) > 1e-9
+    return int(np.sum(moving[1:] & ~moving[:-1]))

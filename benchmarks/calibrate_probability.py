@@ -63,7 +63,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _args import seeds_arg, seeds_text  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+from _args import seeds_arg, seeds_text, slip_count  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 import jaxstiction as js  # noqa: E402
 from jaxstiction.internal import CALIBRATION, FEATURES, fit_calibration, HARD, realistic_fleet, source_hash  # noqa: E402
@@ -100,9 +100,8 @@ def fleet_entries(seeds, threads):
     print(f"screened {len(loops)} fleet loops in {time.time() - t0:.0f} s", flush=True)
     truth = {}
     for f in fleet:
-        moving = np.abs(np.diff(f.valve)) > 1e-9
-        slips = int(np.sum(moving[1:] & ~moving[:-1]))
-        truth[f"s{f.seed}"] = {"sticky": f.sticky, "kind": f.kind, "slips": slips, "integrating": f.integrating}
+        truth[f"s{f.seed}"] = {"sticky": f.sticky, "kind": f.kind, "slips": slip_count(f.valve),
+                               "integrating": f.integrating}
     return [{**e, "truth": truth[e["name"]]} for e in entries]
 
 

@@ -55,7 +55,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _args import seeds_arg, seeds_text  # noqa: E402
+from _args import seeds_arg, seeds_text, slip_count  # noqa: E402
 from _gate import hard_gated  # noqa: E402
 from scipy.signal import lfilter  # noqa: E402
 from scipy.stats import norm  # noqa: E402
@@ -127,8 +127,7 @@ def main():
     for loop in realistic_fleet(args.seeds):
         if not loop.sticky:
             continue
-        moving = np.abs(np.diff(loop.valve)) > 1e-9
-        slips = int(np.sum(moving[1:] & ~moving[:-1]))
+        slips = slip_count(loop.valve)
         free, known = oracle_lambdas(loop, fleet_draw(loop.seed, None)[0])
         rows.append((loop.seed, slips, free, known, hard_gated(loop.op, loop.pv, loop.sp)))
         if args.loops:
