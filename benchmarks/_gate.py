@@ -4,7 +4,7 @@ import jax
 import numpy as np
 
 import jaxstiction as js
-from jaxstiction.internal import gate_measures
+from jaxstiction.internal import gate_measures, hard_gated as _hard_gated
 
 
 _measures = jax.jit(gate_measures)  # op by op, each record length would compile dozens of kernels
@@ -13,7 +13,6 @@ _measures = jax.jit(gate_measures)  # op by op, each record length would compile
 def hard_gated(op, pv, sp, settings=js.VerdictSettings()) -> bool:
     """Whether the screen's hard gates stop a record whatever the evidence (PV
     frozen, OP at a stop, or a record compressed or coarsely quantised by the
-    historian), by the gate's own measures and `settings`' thresholds."""
+    historian): the library's `hard_gated` on the gate's own measures."""
     g = _measures(np.asarray(op, float), np.asarray(pv, float), np.asarray(sp, float), np.ones(len(pv)))
-    return bool(g.frozen or g.saturated > settings.max_saturated
-                or (g.compressed > settings.max_compressed and g.longest_flat <= settings.max_flat_run))
+    return bool(_hard_gated(g, settings))

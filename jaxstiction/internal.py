@@ -155,7 +155,13 @@ from ._spline import (
 )
 from ._verdict.calibration import CALIBRATION as CALIBRATION
 from ._verdict.crossval import crossval_gain as crossval_gain, kstep_prediction as kstep_prediction
-from ._verdict.gate import gate_measures as gate_measures, GateMeasures as GateMeasures, GATES as GATES, HARD as HARD
+from ._verdict.gate import (
+    gate_measures as gate_measures,
+    GateMeasures as GateMeasures,
+    GATES as GATES,
+    HARD as HARD,
+    hard_gated as hard_gated,
+)
 from ._verdict.indicators import (
     autocorrelation as autocorrelation,
     bicoherence as bicoherence,

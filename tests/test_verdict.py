@@ -167,6 +167,31 @@ def test_gate_names_each_reason(records):
     assert _gate_of(slow, -slow + np.random.default_rng(0).normal(0, 0.01, t.size)) == "few_periods"
 
 
+def test_hard_gated_is_the_gate_s_hard_codes(records):
+    """`hard_gated` is True exactly where `gate` returns a code of `HARD`, one record
+    at a time and vmapped over a batch of them."""
+    op, pv = records["sticky"]
+    held = pv.copy()
+    for i in range(1, len(held)):
+        held[i] = held[i - 1] if abs(pv[i] - held[i - 1]) < 1.5 else pv[i]
+    t = np.arange(len(pv))
+    cases = [(op, pv), (op, np.full_like(pv, 3.5)), (np.clip(op, None, np.quantile(op, 0.6)), pv), (op, held),
+             (op, pv + 20 * (t > 600))]
+    sp = np.full(len(pv), np.nan)
+    m = np.ones(len(pv))
+    one = []
+    for o, p in cases:
+        g = internal.gate_measures(jnp.asarray(o, float), jnp.asarray(p, float), jnp.asarray(sp), jnp.asarray(m))
+        code = GATES[int(gate(g, internal.indicators(jnp.asarray(o, float), jnp.asarray(p, float), sp, m),
+                              js.VerdictSettings()))]
+        one.append(bool(internal.hard_gated(g)))
+        assert one[-1] == (code in internal.HARD), code
+    assert one == [False, True, True, True, False]
+    ops, pvs = (jnp.asarray(np.stack(x), float) for x in zip(*cases))
+    batched = jax.vmap(lambda o, p: internal.hard_gated(internal.gate_measures(o, p, sp, m)))(ops, pvs)
+    assert [bool(b) for b in batched] == one
+
+
 def test_setpoint_moves_leave_the_call_to_a_model_that_explains_them():
     """Under setpoint moves a low probability is `inconclusive`, unless the model-based
     test wins with a Kano model that simulates the held-out PV well and a band that

@@ -33,6 +33,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from .settings import VerdictSettings
+
 
 GATES = ("ok", "frozen_sensor", "saturated", "compressed", "setpoint_moves", "few_periods")
 HARD = ("frozen_sensor", "saturated", "compressed")
@@ -92,6 +94,20 @@ def gate_measures(op, pv, sp, mask) -> GateMeasures:
     frozen = pvmax - pvmin <= 1e-12 * jnp.maximum(jnp.abs(pvmax), 1e-300)
     return GateMeasures(saturated=saturated, compressed=jnp.maximum(share_pv, share_op),
                         longest_flat=longest.astype(op.dtype), setpoint_share=share, frozen=frozen)
+
+
+def hard_checks(g: GateMeasures, settings: VerdictSettings) -> tuple[Bool[Array, ""], ...]:
+    """The checks of `HARD`, in its order, by `settings`' thresholds: True where the
+    record fails it."""
+    return (g.frozen, g.saturated > settings.max_saturated,
+            (g.compressed > settings.max_compressed) & (g.longest_flat <= settings.max_flat_run))
+
+
+def hard_gated(g: GateMeasures, settings: VerdictSettings = VerdictSettings()) -> Bool[Array, ""]:
+    """True where a hard gate stops the record whatever the evidence (PV frozen, OP
+    at a stop, or the record compressed or coarsely quantised by the historian)."""
+    frozen, saturated, compressed = hard_checks(g, settings)
+    return frozen | saturated | compressed
 
 
 GATE_TEXT = {

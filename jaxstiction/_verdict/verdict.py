@@ -88,7 +88,7 @@ from .._filters import fitness, fitness_trend_free
 from .._loop import Loop
 from .calibration import CALIBRATION
 from .crossval import crossval_gain
-from .gate import gate_measures, gate_reason, GateMeasures, GATES, HARD
+from .gate import gate_measures, gate_reason, GateMeasures, GATES, HARD, hard_checks
 from .indicators import Indicators, indicators
 from .limitcycle import limit_cycle, LimitCycle
 from .probability import Calibration
@@ -190,9 +190,7 @@ def gate(g: GateMeasures, ind: Indicators, settings: VerdictSettings) -> Int[Arr
     """The gate's code (an index into `GATES`) from its measures and the
     indicators: the first check the loop fails, in the order of `GATES`."""
     few = ~jnp.isfinite(ind.period) | (ind.periods < settings.min_periods)
-    checks = [g.frozen, g.saturated > settings.max_saturated,
-              (g.compressed > settings.max_compressed) & (g.longest_flat <= settings.max_flat_run),
-              g.setpoint_share > settings.max_setpoint_share, few]
+    checks = [*hard_checks(g, settings), g.setpoint_share > settings.max_setpoint_share, few]
     code = jnp.asarray(0, jnp.int32)
     for k, failed in reversed(list(enumerate(checks, start=1))):
         code = jnp.where(failed, k, code)
