@@ -76,11 +76,13 @@ from jaxstiction.internal import (  # noqa: E402
     bucket_length,
     closed_loop,
     fleet_draw,
+    FLEET_LONGEST,
     FLEET_RUN_IN,
     grid_knockers,
     nominal_model,
     pad,
     realistic_fleet,
+    release_programs_near_map_limit,
     SCREEN_ESTIMATE,
     whatif_model,
     with_valve,
@@ -212,7 +214,12 @@ class Fleet:
 
     def __init__(self, seed: int, loop):
         self.seed, self.loop = seed, loop
-        self.params, self.r, self.load, self.out, self.n, _ = fleet_draw(seed, "stiction")
+        self.params, r, load, out, self.n, _ = fleet_draw(seed, "stiction")
+        # every draw's signals at one length (the fleet's own padding), so the truth's
+        # runs compile once for the whole fleet: one program per record length leaked
+        # enough compiled code over 50 loops to exhaust the process's memory maps
+        width = FLEET_RUN_IN + FLEET_LONGEST
+        self.r, self.load, self.out = (np.concatenate([x, np.full(width - len(x), x[-1])]) for x in (r, load, out))
         self.S, self.J = loop.S, loop.J
         self.kind = f"{'integrating' if loop.integrating else 'self-regulating'}, delay {loop.delay}" + (
             f", {'+'.join(h[0] for h in loop.historian)}" if loop.historian else "")
@@ -227,6 +234,7 @@ class Fleet:
         if S is not None:
             p["S"], p["J"] = jnp.asarray(S), jnp.asarray(J)
         knock = (0.0, 1.0, 2) if knocker is None else (knocker.amplitude, knocker.width, knocker.period)
+        knock = (jnp.asarray(knock[0], float), jnp.asarray(knock[1], float), jnp.asarray(knock[2], jnp.int32))
         u, pv, v = _fleet_run(p, jnp.asarray(self.r), jnp.asarray(self.load), jnp.asarray(self.out), knock)
         cut = slice(FLEET_RUN_IN, FLEET_RUN_IN + self.n)
         return np.asarray(u)[cut], np.asarray(pv)[cut] + 50.0, np.asarray(v)[cut], self.r[cut] + 50.0
@@ -448,6 +456,7 @@ def main():
         wset = WhatIfSettings(init_count=args.init_count, refine=not args.no_refine, polish=not args.no_polish)
         r = one_loop(c, settings, wset, not args.no_oracle, designs, args.pad, args.true_valve)
         rows.append(r)
+        release_programs_near_map_limit()  # each length bucket's fit and what-if hold ~7000 memory maps
         if not args.json:
             print(f"seed {r['seed']:3d} {r['kind']:<22} S {r['S']:5.2f}/{r['S_fit']:5.2f}/{r['S_whatif']:5.2f} J "
                   f"{r['J']:5.2f}/{r['J_fit']:5.2f}/{r['J_whatif']:5.2f}  start {r['start']:4d}  "

@@ -525,6 +525,25 @@ def test_a_chunk_that_crashes_costs_only_the_loop_that_crashed(fleet, screened, 
     _assert_same_entries(list(got.values()), list(want.values()))
 
 
+def test_programs_are_released_between_buckets_near_the_map_limit(monkeypatch):
+    """The screen asks to release compiled programs (`release_programs_near_map_limit`,
+    which acts only past half the kernel's memory-map limit) between length buckets,
+    never inside one, so that a fleet of many record lengths cannot exhaust the maps."""
+    import importlib
+
+    batch = importlib.import_module("jaxstiction._screen.batch")
+    events = []
+    monkeypatch.setattr(batch, "release_programs_near_map_limit", lambda: events.append("release"))
+    monkeypatch.setattr(batch, "run_chunk", lambda members, length, size, settings, **kw:
+                        [events.append(length) or {"name": m[0]} for m in members])
+    rng = np.random.default_rng(0)
+    items = [(f"l{i}", None, rng.normal(size=n), rng.normal(size=n), 1.0, None)
+             for i, n in enumerate((700, 750, 1400, 1450, 1900))]
+    out = batch._run(items, js.ScreenSettings(chunk=1, threads=1), None, None, False)
+    assert sorted(r["name"] for r in out) == [f"l{i}" for i in range(5)]
+    assert events == [800, 800, "release", 1500, 1500, "release", 2000]
+
+
 @pytest.mark.slow
 def test_results_do_not_depend_on_the_chunk(fleet, screened):
     """One loop per batched call gives the fixture's entries at three loops per call,

@@ -34,7 +34,7 @@ from .._estimate.report import report
 from .._estimate.result import delay_note, held_out_note, KINDS, RESULTS
 from .._estimate.settings import Settings
 from .._loop import bucket_length, Loop, make_loop, stack
-from .._misc import json_number as _r, thread_map
+from .._misc import json_number as _r, release_programs_near_map_limit, thread_map
 from .._programs import exported_call
 from .._verdict.gate import gate_reason, GATES
 from .._verdict.settings import VerdictSettings
@@ -285,9 +285,14 @@ def _run(items, settings, progress, scheduler, pictures) -> list[dict]:
         return out
 
     # bucket by bucket: its first chunk alone (the call compiles the bucket's
-    # program once), the others `settings.threads` at a time
+    # program once), the others `settings.threads` at a time. Each bucket's programs
+    # (the fit, the verdict, with `whatif` its replays: ~7000 memory maps) stay in
+    # memory; past half the kernel's map limit they are released between buckets,
+    # or a fleet of many record lengths aborts in LLVM ("Cannot allocate memory")
     out = []
-    for _, bucket in itertools.groupby(enumerate(chunks), key=lambda kc: kc[1][:2]):
+    for k, (_, bucket) in enumerate(itertools.groupby(enumerate(chunks), key=lambda kc: kc[1][:2])):
+        if k:
+            release_programs_near_map_limit()
         out += [r for part in thread_map(one, bucket, settings.threads) for r in part]
     return out
 
