@@ -46,7 +46,13 @@ fitted in the run (the leave-one-out figures always refit).
 limit-cycle check (`jaxstiction.internal.limit_cycle`, reported in each entry but not
 weighed by the shipped probability), and `--drop horch,ngi` (any features,
 comma-separated) without those: what a feature adds, measured side by side on the
-same cached evidence.
+same cached evidence. `--integrating` adds a flag for an integrating (level) process
+and its products with the model-based evidence (`INTEGRATING`), the flag taken
+from what is known, not from the data: the truth on the fleet, an `LIC` tag on the
+plant records, 0 on the ISDB loops. It measures what the best case of a
+per-process-type weighing of the evidence would add. `--integrating data` takes the
+flag from the record instead (`drift`: an ARX fit's autoregressive coefficients
+summing to nearly 1).
 
 The screened evidence is cached in `benchmarks/out/`, keyed by the seeds and by
 the package's source (a changed package screens again); `--fresh` recomputes it.
@@ -76,13 +82,71 @@ REAL_SHARE = 2 / 3  # of the total weight carried by the real records (--real-sh
 BALANCED = True  # sticky and healthy weigh the same in each part (--natural-odds: as drawn)
 COLUMNS = FEATURES  # what the probability is fitted on (--limit-cycle adds one)
 DROPPED = frozenset()  # columns taken as missing everywhere (--drop)
+# --integrating: the flag, and the evidence it multiplies
+INTEGRATING = ("evidence", "evidence_estimation", "evidence_prediction", "crossval")
+
+
+DRIFT = {}  # --integrating data: `drift` of each record, by `key`
+DRIFT_FLAG = 0.05  # below this `drift`, a record is taken as integrating
+
+
+def key(entry):
+    return entry["name"] if "truth" in entry else f"{entry['set']}/{entry['name']}"
+
+
+def drift(op, pv, na=8, nb=20):
+    """One minus the sum of the autoregressive coefficients of an ARX(na, nb) fit of
+    PV on OP (both standardised; least squares): 0 for an integrating process,
+    larger the faster a self-regulating one settles. NaN-free: 1.0 where it cannot
+    be computed."""
+    op, pv = np.asarray(op, float), np.asarray(pv, float)
+    u = (op - op.mean()) / (op.std() or 1.0)
+    y = (pv - pv.mean()) / (pv.std() or 1.0)
+    m = max(na, nb)
+    if len(y) <= 3 * (na + nb):
+        return 1.0
+    X = np.column_stack([y[m - k:len(y) - k] for k in range(1, na + 1)]
+                        + [u[m - k:len(u) - k] for k in range(1, nb + 1)] + [np.ones(len(y) - m)])
+    theta = np.linalg.lstsq(X, y[m:], rcond=None)[0]
+    return float(np.nan_to_num(1.0 - theta[:na].sum(), nan=1.0))
+
+
+def drifts(entries):
+    """`drift` of every entry's record: the fleet's drawn again, the real ones read."""
+    fleet = [int(e["name"][1:]) for e in entries if "truth" in e]
+    out = {f"s{f.seed}": drift(f.op, f.pv) for f in realistic_fleet(fleet)}
+    for e in entries:
+        if "truth" not in e and e.get("file"):
+            try:
+                lp = js.read_loop(e["file"])
+                out[key(e)] = drift(lp.op, lp.pv)
+            except ValueError:
+                out[key(e)] = 1.0
+    return out
+
+
+def integrating(entry):
+    """1.0 where the loop's process is known to integrate (fleet truth; a level
+    controller's `LIC` tag on a plant record), else 0.0; with `--integrating data`,
+    where the record's `drift` is below `DRIFT_FLAG`."""
+    if DRIFT:
+        return float(DRIFT.get(key(entry), 1.0) < DRIFT_FLAG)
+    if "truth" in entry:
+        return float(entry["truth"]["integrating"])
+    return float("LIC" in entry.get("valve", ""))
 
 
 def value(entry, name):
-    """Column `name` of a screen entry: a feature, or the limit-cycle check's
-    reproduction (`limit_cycle`); NaN where missing (null) or dropped."""
+    """Column `name` of a screen entry: a feature, the limit-cycle check's
+    reproduction (`limit_cycle`), or `integrating` and its products
+    (`integrating*evidence`, ...); NaN where missing (null) or dropped."""
     if name in DROPPED:
         return np.nan
+    if name == "integrating":
+        return integrating(entry)
+    if name.startswith("integrating*"):
+        v = entry["features"][name.split("*")[1]]
+        return integrating(entry) * (0.0 if v is None else v)
     v = entry["features"][name] if name in FEATURES else entry["limit_cycle"]["reproduction"]
     return np.nan if v is None else v
 
@@ -292,6 +356,10 @@ def main():
                         help="share of the total weight carried by the real records (default 2/3)")
     parser.add_argument("--limit-cycle", action="store_true",
                         help="also fit on the limit-cycle check's reproduction (a measurement of what it would add)")
+    parser.add_argument("--integrating", nargs="?", const="known", choices=("known", "data"),
+                        help="also fit on an integrating-process flag (known, or 'data': estimated from the record) "
+                             "and its products with the model-based evidence (a measurement of what weighing the "
+                             "evidence by process type would add)")
     parser.add_argument("--shipped", action="store_true",
                         help="score the shipped coefficients on the check seeds, instead of those fitted here")
     parser.add_argument("--drop", default="",
@@ -302,14 +370,18 @@ def main():
     if args.limit_cycle and args.write:
         parser.error("--limit-cycle is a measurement: it cannot be combined with --write")
     COLUMNS = FEATURES + (("limit_cycle",) if args.limit_cycle else ())
+    if args.integrating:
+        COLUMNS += ("integrating",) + tuple(f"integrating*{k}" for k in INTEGRATING)
+    if args.integrating and args.write:
+        parser.error("--integrating is a measurement: it cannot be combined with --write")
     if set(dropped) - set(COLUMNS):
         parser.error(f"--drop: unknown features {sorted(set(dropped) - set(COLUMNS))}; they are {COLUMNS}")
     DROPPED = frozenset(dropped)
     if dropped and args.write:
         parser.error("--drop is a measurement: it cannot be combined with --write")
-    if args.shipped and (args.write or args.limit_cycle or dropped):
+    if args.shipped and (args.write or args.limit_cycle or dropped or args.integrating):
         parser.error("--shipped scores the shipped coefficients: it cannot be combined with --write, "
-                     "--limit-cycle or --drop")
+                     "--limit-cycle, --integrating or --drop")
     if not 0 < args.real_share < 1:
         parser.error("--real-share must lie strictly between 0 and 1")
     REAL_SHARE = args.real_share
@@ -321,6 +393,17 @@ def main():
     check = cached(out / f"fleet_{seeds_text(args.check_seeds)}.json",
                    lambda: fleet_entries(args.check_seeds, args.threads), args.fresh)
     real = cached(out / "real.json", lambda: real_entries(args.plant, args.isdb, args.threads), args.fresh)
+    if args.integrating == "data":
+        DRIFT.update(drifts(sim + check + real))
+        truth = [e["truth"]["integrating"] for e in sim]
+        flagged = [integrating(e) for e in sim]
+        print(f"--integrating data: flagged {sum(f for f, t in zip(flagged, truth) if t):.0f} of {sum(truth)} "
+              f"integrating and {sum(f for f, t in zip(flagged, truth) if not t):.0f} of {len(truth) - sum(truth)} "
+              f"self-regulating fit-seed loops")
+        d = np.array([DRIFT[key(e)] for e in sim])
+        pos, neg = d[np.array(truth)], d[~np.array(truth)]
+        auc = np.mean(pos[:, None] < neg[None, :]) + 0.5 * np.mean(pos[:, None] == neg[None, :])
+        print(f"  drift ranks integrating below self-regulating with an area under the ROC curve of {auc:.3f}")
     sim = [e for e in sim if e["status"] == "ok"]
     labelled = [e for e in real if e["label"] is not None]
 
