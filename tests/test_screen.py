@@ -544,6 +544,35 @@ def test_programs_are_released_between_buckets_near_the_map_limit(monkeypatch):
     assert events == [800, 800, "release", 1500, 1500, "release", 2000]
 
 
+def test_dask_chunks_release_programs_near_the_map_limit(monkeypatch):
+    """On a Dask cluster every chunk first asks its worker to release compiled
+    programs past half the memory-map limit (`run_chunk(..., release=True)`), since a
+    long-lived worker meets many length buckets and nothing else releases them."""
+    import importlib
+
+    distributed = pytest.importorskip("dask.distributed")
+    batch = importlib.import_module("jaxstiction._screen.batch")
+    events = []
+    monkeypatch.setattr(batch, "release_programs_near_map_limit", lambda: events.append("release"))
+
+    def no_program(*args, **kwargs):
+        events.append("fit")
+        raise RuntimeError("no program here")
+
+    monkeypatch.setattr(batch, "exported_call", no_program)
+    rng = np.random.default_rng(0)
+    items = [(f"l{i}", None, rng.normal(size=n), rng.normal(size=n), 1.0, None)
+             for i, n in enumerate((700, 1400))]
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+        out = batch._run(items, js.ScreenSettings(chunk=1, threads=1), None, client, False)
+    assert sorted(r["name"] for r in out) == ["l0", "l1"]
+    assert all("no program here" in r["status"] for r in out)
+    assert events == ["release", "fit", "release", "fit"]
+    events.clear()
+    batch.run_chunk(items[:1], 800, 1, js.ScreenSettings())  # the local screen releases between buckets instead
+    assert events == ["fit"]
+
+
 @pytest.mark.slow
 def test_results_do_not_depend_on_the_chunk(fleet, screened):
     """One loop per batched call gives the fixture's entries at three loops per call,

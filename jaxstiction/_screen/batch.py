@@ -194,17 +194,24 @@ def _record(name, file, op, pv, ts, fit, ver, settings: Settings, pictures: bool
 
 
 def run_chunk(items: Sequence[tuple], length: int, size: int, settings: ScreenSettings = ScreenSettings(),
-              *, pictures: bool = False, enable_x64: bool = False, device=None) -> list[dict]:
+              *, pictures: bool = False, enable_x64: bool = False, device=None, release: bool = False) -> list[dict]:
     """Fit one chunk of loops in one batched call and return their entries.
 
     `items`: `(name, file, op, pv, ts)` tuples (NumPy arrays, already checked),
     padded to `length` samples and, with repeats of the first loop that are then
     dropped, to `size` loops, so every chunk of a bucket has one shape. A top-level
     function of plain arguments, so a Dask worker can run it; `enable_x64` turns on
-    float64 in that worker (the application's choice, as the CLI's).
+    float64 in that worker (the application's choice, as the CLI's), and `release`
+    first releases the worker's compiled programs when they hold more than half the
+    kernel's memory-map limit (`release_programs_near_map_limit`): a long-lived
+    worker that meets many length buckets would otherwise exhaust the maps and
+    abort. Clearing drops the caches' references only; a program running on another
+    of the worker's threads holds its own.
     """
     if enable_x64:
         jax.config.update("jax_enable_x64", True)
+    if release:
+        release_programs_near_map_limit()
     items = list(items)
     loops = [make_loop(it[2], it[3], it[4], sp=setpoint_of(it)) for it in items]
     loops += [loops[0]] * (size - len(loops))
@@ -316,7 +323,7 @@ def _run_dask(chunks, settings, progress, scheduler, pictures) -> list[dict]:
     x64 = bool(jax.config.jax_enable_x64)
     with _dask_client(scheduler) as (client, as_completed):
         futures = {client.submit(run_chunk, members, length, size, settings, pictures=pictures, enable_x64=x64,
-                                 pure=False): members for length, size, members in chunks}
+                                 release=True, pure=False): members for length, size, members in chunks}
         out = []
         for fut in as_completed(futures):
             members = futures[fut]
