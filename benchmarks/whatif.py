@@ -76,7 +76,6 @@ from jaxstiction.internal import (  # noqa: E402
     bucket_length,
     closed_loop,
     fleet_draw,
-    FLEET_LONGEST,
     FLEET_RUN_IN,
     grid_knockers,
     nominal_model,
@@ -214,12 +213,10 @@ class Fleet:
 
     def __init__(self, seed: int, loop):
         self.seed, self.loop = seed, loop
-        self.params, r, load, out, self.n, _ = fleet_draw(seed, "stiction")
-        # every draw's signals at one length (the fleet's own padding), so the truth's
-        # runs compile once for the whole fleet: one program per record length leaked
-        # enough compiled code over 50 loops to exhaust the process's memory maps
-        width = FLEET_RUN_IN + FLEET_LONGEST
-        self.r, self.load, self.out = (np.concatenate([x, np.full(width - len(x), x[-1])]) for x in (r, load, out))
+        # the draw's signals come at the fleet's one length, so the truth's runs compile
+        # once for the whole fleet (one program per record length exhausts the
+        # process's memory maps over 50 loops)
+        self.params, self.r, self.load, self.out, self.n, _ = fleet_draw(seed, "stiction")
         self.S, self.J = loop.S, loop.J
         self.kind = f"{'integrating' if loop.integrating else 'self-regulating'}, delay {loop.delay}" + (
             f", {'+'.join(h[0] for h in loop.historian)}" if loop.historian else "")

@@ -164,7 +164,9 @@ def _tune(a, b, d, kp, ratio, tight):
 
 
 def _draw(seed: int, kind: str | None):
-    """The parameters and input signals of draw `seed` (see the module notes)."""
+    """The parameters and input signals of draw `seed` (see the module notes): the
+    setpoint, load and output disturbance, run-in first, each held at its last value
+    up to `RUN_IN + LONGEST` samples; the `n` after the run-in are the record."""
     rng = np.random.default_rng(seed)
     kind = kind if kind is not None else str(rng.choice(KINDS, p=SHARES))
     n = int(rng.integers(500, LONGEST + 1))
@@ -242,6 +244,9 @@ def _draw(seed: int, kind: str | None):
     if rng.random() < 0.1:
         historian.append(("quantise_op", float(rng.choice([0.1, 0.2, 0.5]))))
     params = dict(b=b, a=a, delay=delay, kp=kp, ki=kp * ratio, op0=op0, S=S, J=J)
+    # every draw's signals at the fleet's one length (held at their last value), so
+    # a simulation of any draw compiles once for the whole fleet
+    r, load, out = (np.concatenate([x, np.full(RUN_IN + LONGEST - nn, x[-1])]) for x in (r, load, out))
     truth = dict(kind=kind, sticky=kind == "stiction", integrating=integrating, gain=gain, delay=delay + 1, S=S,
                  J=J, setpoint=setpoint, historian=tuple(historian), seed=int(seed))
     return params, r, load, out, n, truth
@@ -268,14 +273,9 @@ def realistic_fleet(seeds, kind: str | None = None) -> list[FleetLoop]:
     draws = [_draw(int(s), kind) for s in seeds]
     if not draws:
         return []
-    width = RUN_IN + LONGEST
-
-    def pad(x):
-        return np.concatenate([x, np.full(width - len(x), x[-1])])
-
     params = {k: jnp.asarray(np.stack([np.asarray(d[0][k], float) for d in draws])) for k in draws[0][0]}
     params["delay"] = params["delay"].astype(jnp.int32)
-    signals = [jnp.asarray(np.stack([pad(d[i]) for d in draws])) for i in (1, 2, 3)]
+    signals = [jnp.asarray(np.stack([d[i] for d in draws])) for i in (1, 2, 3)]
     u, pv, v = (np.asarray(x)[:, RUN_IN:] for x in _run(params, *signals))
     out = []
     for i, (_, r, _, _, n, truth) in enumerate(draws):

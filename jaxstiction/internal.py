@@ -105,7 +105,6 @@ from ._fleet import (
     _draw as fleet_draw,
     FleetLoop as FleetLoop,
     KINDS as FLEET_KINDS,
-    LONGEST as FLEET_LONGEST,
     realistic_fleet as realistic_fleet,
     RUN_IN as FLEET_RUN_IN,
 )
