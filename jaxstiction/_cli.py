@@ -295,7 +295,7 @@ def cmd_screen(args):
     settings = screen_settings(args)
     rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
                  pictures=bool(args.out), diagnose=args.diagnose, recursive=args.recursive,
-                 decimate=args.decimate, criticality=criticality)
+                 decimate=args.decimate, criticality=criticality, window=args.window)
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -316,7 +316,8 @@ def cmd_screen(args):
     lines.append(summary)
     if args.json:
         _log(summary)
-    _emit(args, {**rep.to_json(), **_decimate_field(args)}, "\n".join(lines))
+    window = {"window": args.window} if args.window else {}
+    _emit(args, {**rep.to_json(), **_decimate_field(args), **window}, "\n".join(lines))
     return 0
 
 
@@ -556,6 +557,10 @@ def build_parser():
                         "without a nominal model: deadband, dead_time, saturation, external_oscillation, drift, "
                         "quantization, ...) instead of the screen's residual-line test; ~10-80 s per such loop")
     s.add_argument("--decimate", type=_whole, default=1, metavar="K", help=_DECIMATE_HELP)
+    s.add_argument("--window", type=_whole, default=None, metavar="N",
+                   help="screen a record longer than N samples (after --decimate) as the fewest consecutive "
+                        "windows of equal length, at most N samples each, one entry per window named "
+                        "NAME@START-STOP; over days of data a slow cycle can hide a limit cycle")
     s.add_argument("--threads", type=_whole, default=None, metavar="N",
                    help="batched fits running at once, each on one core (default: one per CPU core, at most 8; "
                         "memory grows with N)")

@@ -156,6 +156,29 @@ def decimate(loop: Loop, factor: int) -> Loop:
                 sp=None if loop.sp is None else blocks(loop.sp).mean(-1))
 
 
+def windows(loop: Loop, length: int) -> list[tuple[int, int, Loop]]:
+    """`(start, stop, part)` of one loop's record cut into the fewest consecutive
+    windows of equal length (to a sample) that hold at most `length` samples each;
+    the whole record as one window when it is no longer than `length`. For a
+    record of days, over which a slow cycle (a day's, a shift's) can hide a limit
+    cycle from the oscillation indicators (see the limitations page).
+
+    **Raises:** `ValueError` when `length` is not a positive integer.
+    """
+    if not is_count(length, 1):
+        raise ValueError(f"the window length must be a positive integer, got {length!r}")
+    n = int(loop.op.shape[-1])
+    k = -(-n // int(length))
+    bounds = [i * n // k for i in range(k + 1)]
+
+    def cut(x, a, b):
+        return None if x is None else x[..., a:b]
+
+    return [(a, b, Loop(op=cut(loop.op, a, b), pv=cut(loop.pv, a, b), mask=cut(loop.mask, a, b), ts=loop.ts,
+                        sp=cut(loop.sp, a, b)))
+            for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 def unstack(batch: Loop) -> list[Loop]:
     """The members of a batched loop, each cut back to its real samples."""
     out = []

@@ -82,7 +82,8 @@ def test_unreadable_and_missing_file(tmp_path):
 
 
 @pytest.mark.parametrize("cmd,option", [("fit", "--max-delay"), ("screen", "--max-delay"), ("fit", "--decimate"),
-                                        ("screen", "--decimate"), ("diagnose", "--decimate"), ("screen", "--threads")])
+                                        ("screen", "--decimate"), ("diagnose", "--decimate"), ("screen", "--threads"),
+                                        ("screen", "--window")])
 def test_counts_must_be_positive(tmp_path, cmd, option):
     res = run(cmd, str(tmp_path / "x.csv"), option, "0")
     assert res.returncode == 2 and option in res.stderr and "positive whole number" in res.stderr

@@ -596,6 +596,34 @@ def test_decimate_takes_block_means():
             js.decimate(loops[0], bad)
 
 
+def test_windows_cut_the_record_into_equal_windows():
+    """Against a slow reference: the fewest windows of at most `length` samples,
+    their lengths within one sample of each other, consecutive and covering every
+    sample, each a slice of the record (the setpoint too); a record no longer than
+    `length` is one window; a bad length is refused."""
+    from jaxstiction.internal import windows
+
+    rng = np.random.default_rng(5)
+    for n, length in ((1000, 300), (1000, 250), (7201, 2400), (999, 1000), (10, 1)):
+        lp = make_loop(rng.normal(50, 5, n), rng.normal(10, 1, n), 2.0, sp=rng.normal(10, 1, n))
+        parts = windows(lp, length)
+        k = -(-n // length)
+        assert len(parts) == k
+        assert [a for a, _, _ in parts][0] == 0 and parts[-1][1] == n
+        assert all(b == a2 for (_, b, _), (a2, _, _) in zip(parts[:-1], parts[1:]))
+        sizes = [b - a for a, b, _ in parts]
+        assert max(sizes) <= length and max(sizes) - min(sizes) <= 1
+        for a, b, part in parts:
+            np.testing.assert_array_equal(part.op, np.asarray(lp.op)[a:b])
+            np.testing.assert_array_equal(part.pv, np.asarray(lp.pv)[a:b])
+            np.testing.assert_array_equal(part.sp, np.asarray(lp.sp)[a:b])
+            assert part.mask.shape == (b - a,) and float(part.ts) == 2.0
+    assert windows(_loops()[0], 60)[0][2] is not None and len(windows(_loops()[0], 60)) == 1
+    for bad in (0, -2, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="window length must be a positive integer"):
+            windows(_loops()[0], bad)
+
+
 def test_stack_empty():
     with pytest.raises(ValueError, match="empty"):
         js.stack([])

@@ -194,6 +194,30 @@ def test_read_items_reads_every_tag_of_a_historian_export(tmp_path):
     np.testing.assert_allclose(items[0][3], pv[0])
 
 
+def test_read_items_cuts_long_records_into_windows(tmp_path):
+    """`window=n`: a record longer than n samples becomes the fewest windows of equal
+    length, each one item named `NAME@START-STOP` holding those samples; a shorter
+    record stays one item under its own name; a window too short to fit is that
+    window's error; a bad length fails before any file is read."""
+    from jaxstiction import screen
+    from jaxstiction.internal import read_items
+
+    rng = np.random.default_rng(4)
+    op, pv = 50 + rng.normal(0, 1, 3001), rng.normal(0, 1, 3001)
+    _csv(tmp_path / "FC1.csv", op, pv)
+    _csv(tmp_path / "FC2.csv", op[:900], pv[:900])
+    items, errors, _ = read_items([tmp_path], window=1200)
+    assert not errors
+    assert [it[0] for it in items] == ["FC1@0-1000", "FC1@1000-2000", "FC1@2000-3001", "FC2"]
+    np.testing.assert_allclose(items[1][2], op[1000:2000])
+    np.testing.assert_allclose(items[2][3], pv[2000:])
+    assert items[3][2].shape == (900,)
+    items, errors, _ = read_items([tmp_path / "FC1.csv"], window=400)  # 375-sample windows: too short
+    assert not items and len(errors) == 8 and errors[0]["name"] == "FC1@0-375" and "at least" in errors[0]["status"]
+    with pytest.raises(ValueError, match="window length"):
+        screen([tmp_path / "missing"], window=0)
+
+
 def test_read_items_decimates_every_record(tmp_path):
     """`decimate=k`: every record at k times the sampling time (block means); a bad
     factor fails before any file is read."""

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from .._checks import error_line, LoopDataError, LoopDataWarning, one_line
+from .._checks import error_line, is_count, LoopDataError, LoopDataWarning, one_line
 from .._estimate.report import checked
 from .._io.read import find_loop_files, list_loops, loop_name, read_loop
-from .._loop import decimate as decimated, decimation_factor, Loop
+from .._loop import decimate as decimated, decimation_factor, Loop, windows
 from .batch import _dask_client, _error, _run
 from .causes import _to_diagnose, diagnose_causes
 from .settings import ScreenSettings
@@ -38,7 +38,7 @@ def _unique_name(name: str, path: Path, taken: set) -> str:
 
 
 def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = ScreenSettings(),
-               recursive: bool = False, decimate: int = 1):
+               recursive: bool = False, decimate: int = 1, window: int | None = None):
     """Read and check every loop under `paths` (files and folders, their subfolders
     too with `recursive`; a `.mat` file, or a CSV file with tagged columns, may hold
     several loops: see [`jaxstiction.list_loops`][]). Returns `(items,
@@ -48,7 +48,9 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
     [`jaxstiction.LoopDataWarning`][] messages of the readable ones by name. Names
     are unique: a name met again gets its folder in front (`unit2/FC101`). Every
     record is decimated by `decimate` (see [`jaxstiction.decimate`][]) before it is
-    checked."""
+    checked; with `window`, a record longer than `window` samples (after that) is
+    cut into the fewest windows of equal length holding at most `window` each, each
+    one item named `NAME@START-STOP` (its samples, counted from 0, stop excluded)."""
     items, errors, warned = [], [], {}
     taken: set[str] = set()
     for path in find_loop_files(paths, recursive=recursive):
@@ -66,11 +68,19 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", LoopDataWarning)
                     loop = decimated(read_loop(path, ts=ts, name=sub), decimate)
-                op, pv = checked(np.asarray(loop.op), np.asarray(loop.pv), name, settings.estimate)
-                items.append((name, str(path), op, pv, float(loop.ts), _setpoint(loop)))
+                parts = [(0, 0, loop)] if window is None or loop.op.shape[-1] <= window else windows(loop, window)
                 said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
-                if said:
-                    warned[name] = "; ".join(said)
+                for a, b, part in parts:
+                    part_name = name if len(parts) == 1 else f"{name}@{a}-{b}"
+                    taken.add(part_name)
+                    try:
+                        op, pv = checked(np.asarray(part.op), np.asarray(part.pv), part_name, settings.estimate)
+                    except ValueError as e:  # one window's bad data is that window's error
+                        errors.append(_error(part_name, str(path), _message(e)))
+                        continue
+                    items.append((part_name, str(path), op, pv, float(part.ts), _setpoint(part)))
+                    if said:
+                        warned[part_name] = "; ".join(said)
                 for w in caught:  # any other warning goes on as it would have
                     if not issubclass(w.category, LoopDataWarning):
                         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
@@ -177,7 +187,8 @@ def _progress_bar(show: bool, total: int, desc: str):
 def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: ScreenSettings = ScreenSettings(), *,
            ts: float | None = None, progress: bool = False, scheduler: Any = None,
            pictures: bool = False, diagnose: bool = False, recursive: bool = False,
-           decimate: int = 1, criticality: Mapping[str, float] | None = None) -> ScreenReport:
+           decimate: int = 1, criticality: Mapping[str, float] | None = None,
+           window: int | None = None) -> ScreenReport:
     """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
     for sticky valves, and name the cause of the others.
 
@@ -200,6 +211,12 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     - `decimate`: screen every record at a `decimate` times longer sampling time
       (the means of that many samples; [`jaxstiction.decimate`][]), for records
       sampled much faster than their loops move.
+    - `window`: screen a record longer than `window` samples (after `decimate`)
+      as the fewest consecutive windows of equal length that hold at most `window`
+      samples each, one entry per window named `NAME@START-STOP` (its samples,
+      counted from 0, stop excluded). Over days of data a slow cycle can hide a
+      limit cycle from the oscillation indicators; a window of a few thousand
+      samples does not hold it.
     - `diagnose`: name the cause of the loops not called sticky by the full
       diagnosis (`diagnose_causes`).
     - `criticality`: weights per tag for the maintenance ranking (with
@@ -208,10 +225,14 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
 
     **Returns:** a [`jaxstiction.ScreenReport`][].
 
-    **Raises:** `ValueError` when a path does not exist or a folder has no loop files.
+    **Raises:** `ValueError` when a path does not exist, a folder has no loop files,
+    or `decimate` or `window` is not a positive integer.
     """
     decimate = decimation_factor(decimate)  # a bad factor fails before any file is read
-    items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate)
+    if window is not None and not is_count(window, 1):
+        raise ValueError(f"the window length must be a positive integer, got {window!r}")
+    items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate,
+                                       window=window)
     with contextlib.ExitStack() as client_scope:
         if scheduler is not None:  # one client for both stages
             scheduler = client_scope.enter_context(_dask_client(scheduler))[0]
