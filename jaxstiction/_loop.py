@@ -156,6 +156,13 @@ def decimate(loop: Loop, factor: int) -> Loop:
                 sp=None if loop.sp is None else blocks(loop.sp).mean(-1))
 
 
+def window_length(length: object) -> int:
+    """`length` as an `int`, or a `ValueError` when it is not a positive integer."""
+    if not is_count(length, 1):
+        raise ValueError(f"the window length must be a positive integer, got {length!r}")
+    return int(length)
+
+
 def windows(loop: Loop, length: int) -> list[tuple[int, int, Loop]]:
     """`(start, stop, part)` of one loop's record cut into the fewest consecutive
     windows of equal length (to a sample) that hold at most `length` samples each;
@@ -165,10 +172,8 @@ def windows(loop: Loop, length: int) -> list[tuple[int, int, Loop]]:
 
     **Raises:** `ValueError` when `length` is not a positive integer.
     """
-    if not is_count(length, 1):
-        raise ValueError(f"the window length must be a positive integer, got {length!r}")
     n = int(loop.op.shape[-1])
-    k = -(-n // int(length))
+    k = -(-n // window_length(length))
     bounds = [i * n // k for i in range(k + 1)]
 
     def cut(x, a, b):

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from .._checks import error_line, is_count, LoopDataError, LoopDataWarning, one_line
+from .._checks import error_line, LoopDataError, LoopDataWarning, one_line
 from .._estimate.report import checked
 from .._io.read import find_loop_files, list_loops, loop_name, read_loop
-from .._loop import decimate as decimated, decimation_factor, Loop, windows
+from .._loop import decimate as decimated, decimation_factor, Loop, window_length, windows
 from .batch import _dask_client, _error, _run
 from .causes import _to_diagnose, diagnose_causes
 from .settings import ScreenSettings
@@ -68,7 +68,7 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", LoopDataWarning)
                     loop = decimated(read_loop(path, ts=ts, name=sub), decimate)
-                parts = [(0, 0, loop)] if window is None or loop.op.shape[-1] <= window else windows(loop, window)
+                parts = [(0, None, loop)] if window is None else windows(loop, window)
                 said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
                 for a, b, part in parts:
                     part_name = name if len(parts) == 1 else f"{name}@{a}-{b}"
@@ -229,8 +229,7 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     or `decimate` or `window` is not a positive integer.
     """
     decimate = decimation_factor(decimate)  # a bad factor fails before any file is read
-    if window is not None and not is_count(window, 1):
-        raise ValueError(f"the window length must be a positive integer, got {window!r}")
+    window = None if window is None else window_length(window)  # as `decimate`: before any file is read
     items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate,
                                        window=window)
     with contextlib.ExitStack() as client_scope:
