@@ -18,25 +18,38 @@ def autocorrelation(x):
     return np.array([np.dot(x[: n - k], x[k:]) for k in range(n)]) / np.dot(x, x)
 
 
-def dominant_period(e, min_period=4.0, min_periods=3.0):
-    x = detrend(e)
-    n = len(x)
-    P = np.abs(np.fft.rfft(x, n=4 * n)) ** 2
-    f = np.arange(len(P)) / (4 * n)
-    smooth = np.convolve(P, np.ones(9), mode="same")
-    ok = (f >= min_periods / n) & (f <= 1 / min_period)
+def periodogram(x, length, taper=False):
+    """The periodogram of `x` (detrended, with `taper` times a Hann window,
+    zero-padded to 4 × `length`), smoothed over nine bins, on its frequencies."""
+    x = detrend(x) * (np.hanning(len(x)) if taper else 1.0)
+    P = np.abs(np.fft.rfft(x, n=4 * length)) ** 2
+    return np.arange(len(P)) / (4 * length), P, np.convolve(P, np.ones(9), mode="same")
+
+
+def peak(f, P, smooth, count, min_period=4.0, min_periods=3.0, local=False, below=None):
+    ok = (f >= min_periods / count) & (f <= 1 / min_period)
+    if local:
+        ok &= np.array([0 < i < len(smooth) - 1 and smooth[i - 1] <= smooth[i] >= smooth[i + 1]
+                        for i in range(len(smooth))])
     k = np.argmax(np.where(ok, smooth, -1))
-    f0 = f[k]
     j = np.arange(len(P))
     band = (3 * j >= 2 * k) & (2 * j <= 3 * k)
-    return 1 / f0, P[band].sum() / P[1:].sum()
+    total = P[1:].sum() if below is None else P[1:][f[1:] >= f[k] / below].sum()
+    return 1 / f[k], P[band].sum() / total
 
 
-def oscillation(e, crossings=11):
-    p0, share = dominant_period(e)
+def dominant_period(e, min_period=4.0, min_periods=3.0):
+    return peak(*periodogram(e, len(e)), len(e), min_period, min_periods)
+
+
+def oscillation(e, crossings=11, p0=None):
+    if p0 is None:
+        p0, share = dominant_period(e)
+    else:
+        share = np.nan
     r = autocorrelation(lowpass(e, p0, 3.0))
     z = []
-    for k in range(len(r) - 1):
+    for k in range(len(r) - 2):  # the last lag, one product, is left out
         if (r[k] >= 0) != (r[k + 1] >= 0):
             z.append(k + r[k] / (r[k] - r[k + 1]))
             if len(z) == crossings:
@@ -45,6 +58,31 @@ def oscillation(e, crossings=11):
         return np.nan, 0.0, share
     T = np.array([z[i + 2] - z[i] for i in range(len(z) - 2)])
     return T.mean(), T.mean() / (3 * T.std(ddof=1)), share
+
+
+def segmented(op, pv, segment):
+    """The indicators of a record cut into the fewest equal pieces of at most
+    `segment` samples (`segment` must divide its length): the period from the
+    pieces' averaged periodogram, the rest the median over the pieces."""
+    n = len(pv)
+    k = n // segment
+    assert k * segment == n
+    cut = lambda x: x.reshape(k, segment)  # noqa: E731
+    ops, pvs = cut(op), cut(pv)
+    spectra = [periodogram(-y, segment, taper=True) for y in pvs]
+    f = spectra[0][0]
+    p0, share = peak(f, np.mean([s[1] for s in spectra], axis=0), np.mean([s[2] for s in spectra], axis=0), segment,
+                    local=True, below=3.0)
+    rows = []
+    for u, y in zip(ops, pvs):
+        u, y = highpass(u, p0), highpass(y, p0)
+        T, reg, _ = oscillation(-y, p0=p0)
+        dy = np.concatenate([[0.0], np.diff(y)])
+        rows.append(dict(period=T, regularity=reg, horch=horch_phase(u, -y, T), shape_op=shape_index(u, T),
+                         shape_pv=shape_index(y, T), ngi=bicoherence(-y)[0], nli=bicoherence(-y)[1],
+                         stuck_pv=stuck_share(u, y, T), stuck_dpv=stuck_share(u, dy, T)))
+    out = {key: float(np.nanmedian([r[key] for r in rows])) for key in rows[0]}
+    return dict(out, share=share, periods=n / out["period"])
 
 
 def horch_phase(op, e, period):
@@ -58,6 +96,13 @@ def lowpass(x, period, harmonics=7.5):
     x = detrend(x)
     F = np.fft.rfft(x)
     F[np.fft.rfftfreq(len(x)) > harmonics / period] = 0
+    return np.fft.irfft(F, n=len(x))
+
+
+def highpass(x, period, below=3.0):
+    x = detrend(x)
+    F = np.fft.rfft(x)
+    F[np.fft.rfftfreq(len(x)) < 1 / (below * period)] = 0
     return np.fft.irfft(F, n=len(x))
 
 

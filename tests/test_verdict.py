@@ -12,6 +12,7 @@ import reference_verdict as R
 
 import jaxstiction as js
 import jaxstiction.internal as internal
+from jaxstiction._fleet import LONGEST
 from jaxstiction.internal import fit_calibration, gate, GATES, kstep_prediction
 
 
@@ -89,6 +90,68 @@ def test_indicators_under_jit_and_vmap(records):
         # off a finer or coarser grid
         alone = indicators(jnp.asarray(op[:n]), jnp.asarray(pv[:n]), jnp.full(n, jnp.nan), jnp.ones(n))
         assert float(batched.period[i]) == pytest.approx(float(alone.period), rel=0.02)
+
+
+@pytest.mark.parametrize("name", ["sticky", "external", "noise"])
+def test_segmented_indicators_equal_their_reference(records, name):
+    """A record longer than `segment` is read in equal segments: the period from the
+    segments' averaged periodogram, the rest the median over the segments, as the
+    slow reference computes them piece by piece."""
+    op, pv = records[name]
+    ind = indicators(jnp.asarray(op), jnp.asarray(pv), jnp.full(op.shape, jnp.nan), jnp.ones(op.shape), 400)
+    ref = R.segmented(op, pv, 400)
+    for key, value in ref.items():
+        assert float(getattr(ind, key)) == pytest.approx(value, rel=1e-6, abs=1e-9, nan_ok=True), key
+
+
+def test_segments_find_a_limit_cycle_under_a_slow_swing():
+    """Over a long record a slow swing of the error carries more power than a fast
+    limit cycle: read whole, the record shows the swing; read in segments of the
+    default length, the limit cycle, regular and with its sticky signature."""
+    t = np.arange(7200.0)
+    rng = np.random.default_rng(1)
+    square = np.sign(np.sin(2 * np.pi * t / 20.0))
+    pv = 10 + 0.5 * square + 3.0 * np.sin(2 * np.pi * t / 1400.0) + 0.05 * rng.normal(size=t.size)
+    op = 50 - 0.2 * np.cumsum(pv - 10 - 3.0 * np.sin(2 * np.pi * t / 1400.0))
+    args = (jnp.asarray(op), jnp.asarray(pv), jnp.full(t.size, jnp.nan), jnp.ones(t.size))
+    whole = indicators(*args)
+    seg = indicators(*args, js.VerdictSettings().segment)
+    assert float(whole.period) > 200
+    assert float(seg.period) == pytest.approx(20, rel=0.05) and float(seg.regularity) > 1
+    assert float(seg.share) > 0.5
+    assert float(seg.horch) > 0.9 and float(seg.periods) == pytest.approx(7200 / float(seg.period))
+
+
+def test_segmented_indicators_under_vmap_and_padding(records):
+    """Segmented or whole is chosen per loop by its real samples: vmapped over padded
+    records, the indicators equal a loop over the records; a record no longer than
+    `segment` is read whole whatever its padding, and one cut to its real samples
+    reads the same as padded."""
+    op, pv = records["sticky"]
+    lengths = (1200, 1000, 480)
+    loops = js.stack([js.make_loop(op[:n], pv[:n]) for n in lengths])
+    nan = jnp.full_like(loops.op, jnp.nan)
+    batched = eqx.filter_jit(jax.vmap(lambda *a: internal.indicators(*a, segment=500)))(
+        loops.op, loops.pv, nan, loops.mask)
+    for i, n in enumerate(lengths):
+        one = indicators(loops.op[i], loops.pv[i], nan[i], loops.mask[i], 500)
+        for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(batched)):
+            assert float(b[i]) == pytest.approx(float(a), rel=1e-9, abs=1e-12, nan_ok=True)
+        cut = indicators(jnp.asarray(op[:n]), jnp.asarray(pv[:n]), jnp.full(n, jnp.nan), jnp.ones(n), 500)
+        if n > 500:  # each segment sits in an array of `segment` samples, padded or not
+            for a, b in zip(jax.tree.leaves(cut), jax.tree.leaves(one)):
+                assert float(b) == pytest.approx(float(a), rel=1e-9, abs=1e-12, nan_ok=True)
+    whole = indicators(loops.op[2], loops.pv[2], nan[2], loops.mask[2])
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(batched)):
+        assert float(b[2]) == pytest.approx(float(a), rel=1e-12, abs=1e-15, nan_ok=True)
+
+
+def test_segment_setting():
+    """The default segment is the longest record of the calibration's fleet; a bad
+    one is refused."""
+    assert js.VerdictSettings().segment == LONGEST
+    with pytest.raises(ValueError, match="segment"):
+        js.VerdictSettings(segment=0)
 
 
 def test_setpoint_gives_the_control_error(records):

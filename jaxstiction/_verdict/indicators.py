@@ -63,27 +63,50 @@ def autocorrelation(x: Float[Array, " time"], mask: Float[Array, " time"]) -> Fl
 CROSSINGS = 11  # zero crossings of the autocorrelation read by `oscillation`
 
 
+def _periodogram(e, mask, taper: bool = False):
+    """`(f, P, smooth, count)`: the periodogram of `e` (a quadratic trend removed,
+    zero-padded four times; with `taper`, times a Hann window over the real samples,
+    which are then the first ones) on the frequencies `f`, smoothed over ± one
+    natural bin, and the count of real samples."""
+    n = e.shape[0]
+    w = (mask > 0).astype(e.dtype)
+    x = _weighted_detrend(e, w, 2)
+    if taper:
+        j = jnp.arange(n, dtype=e.dtype)
+        x = x * (0.5 - 0.5 * jnp.cos(2 * jnp.pi * j / jnp.maximum(_count(w) - 1.0, 1.0)))
+    pad = 4
+    P = jnp.abs(jnp.fft.rfft(x, n=pad * n)) ** 2
+    f = jnp.arange(P.shape[0], dtype=e.dtype) / (pad * n)
+    smooth = jnp.convolve(P, jnp.ones((2 * pad + 1,), P.dtype), mode="same")
+    return f, P, smooth, _count(w)
+
+
+def _peak(f, P, smooth, count, min_period: float, min_periods: float, local: bool = False,
+          below: float | None = None):
+    """`(period, share)` of the sharpest line of `smooth` (see `dominant_period`);
+    with `local`, of its highest local maximum (not the slope of a slower swing's
+    lobe at the edge of the periods searched); with `below`, the share is of the
+    power at frequencies of at least a `below`-th of the line's (as `highpass`
+    leaves)."""
+    ok = (f >= min_periods / count) & (f <= 1.0 / min_period)
+    if local:
+        ok = ok & (smooth >= jnp.roll(smooth, 1)) & (smooth >= jnp.roll(smooth, -1))
+    k = jnp.argmax(jnp.where(ok, smooth, -1.0))
+    f0 = f[k]
+    j = jnp.arange(P.shape[0])
+    band = (3 * j >= 2 * k) & (2 * j <= 3 * k)  # f0 / 1.5 <= f <= 1.5 f0, on whole bins
+    total = P[1:] if below is None else jnp.where(f[1:] >= f0 / below, P[1:], 0.0)
+    share = jnp.sum(jnp.where(band, P, 0.0)) / jnp.maximum(jnp.sum(total), 1e-300)
+    return jnp.where(jnp.any(ok), 1.0 / jnp.maximum(f0, 1e-12), jnp.nan), jnp.clip(share, 0.0, 1.0)
+
+
 def dominant_period(e, mask, min_period: float = 4.0, min_periods: float = 3.0):
     """`(period, share)`: the period (samples) of the strongest component of `e` (a
     quadratic trend removed) among periods from `min_period` to the record's length
     over `min_periods`, from its periodogram (zero-padded four times, smoothed over
     ± one natural bin), and the share of the signal's power within a factor 1.5 of
     that frequency."""
-    n = e.shape[0]
-    w = (mask > 0).astype(e.dtype)
-    count = _count(w)
-    x = _weighted_detrend(e, w, 2)
-    pad = 4
-    P = jnp.abs(jnp.fft.rfft(x, n=pad * n)) ** 2
-    f = jnp.arange(P.shape[0], dtype=e.dtype) / (pad * n)
-    smooth = jnp.convolve(P, jnp.ones((2 * pad + 1,), P.dtype), mode="same")
-    ok = (f >= min_periods / count) & (f <= 1.0 / min_period)
-    k = jnp.argmax(jnp.where(ok, smooth, -1.0))
-    f0 = f[k]
-    j = jnp.arange(P.shape[0])
-    band = (3 * j >= 2 * k) & (2 * j <= 3 * k)  # f0 / 1.5 <= f <= 1.5 f0, on whole bins
-    share = jnp.sum(jnp.where(band, P, 0.0)) / jnp.maximum(jnp.sum(P[1:]), 1e-300)
-    return jnp.where(jnp.any(ok), 1.0 / jnp.maximum(f0, 1e-12), jnp.nan), jnp.clip(share, 0.0, 1.0)
+    return _peak(*_periodogram(e, mask), min_period, min_periods)
 
 
 def cycle(e: Float[Array, " time"], w: Float[Array, " time"], min_periods: float = 3.0):
@@ -111,8 +134,15 @@ def oscillation(e: Float[Array, " time"], mask: Float[Array, " time"]):
     factor 1.5 of the dominant frequency.
     """
     w = (mask > 0).astype(e.dtype)
-    n_real = _count(w)
     p0, share = dominant_period(e, w)
+    return *regularity(e, w, p0), share
+
+
+def regularity(e: Float[Array, " time"], mask: Float[Array, " time"], p0):
+    """`(period, regularity)` of the oscillation in `e` whose dominant period is
+    `p0` (see `oscillation`)."""
+    w = (mask > 0).astype(e.dtype)
+    n_real = _count(w)
     r = autocorrelation(lowpass(e, w, p0, harmonics=3.0), w)
     lags = jnp.arange(r.shape[0], dtype=e.dtype)
     valid = lags < n_real - 1
@@ -129,8 +159,7 @@ def oscillation(e: Float[Array, " time"], mask: Float[Array, " time"]):
     var = jnp.sum(jnp.where(ok, (T - mean) ** 2, 0.0)) / jnp.maximum(k - 1, 1)
     enough = (jnp.sum(found) >= 4) & jnp.isfinite(p0)
     period = jnp.where(enough, mean, jnp.nan)
-    regularity = jnp.where(enough, mean / (3.0 * jnp.sqrt(var) + 1e-12 * mean), 0.0)
-    return period, regularity, share
+    return period, jnp.where(enough, mean / (3.0 * jnp.sqrt(var) + 1e-12 * mean), 0.0)
 
 
 def horch_phase(op, e, mask, period):
@@ -159,6 +188,19 @@ def lowpass(x, mask, period, harmonics: float = 7.5):
     f = jnp.fft.rfftfreq(n)
     cut = jnp.where(jnp.isfinite(period) & (period > 0), harmonics / jnp.where(period > 0, period, 1.0), 1.0)
     return w * jnp.fft.irfft(jnp.where(f <= cut, F, 0.0), n=n)
+
+
+def highpass(x, mask, period, below: float = 3.0):
+    """`x` (a quadratic trend removed) with every component slower than a `below`-th
+    of the oscillation's frequency 1/`period` removed (an FFT brick wall); the whole
+    detrended signal when `period` is not finite."""
+    n = x.shape[0]
+    w = (mask > 0).astype(x.dtype)
+    x = _weighted_detrend(x, w, 2)
+    F = jnp.fft.rfft(x)
+    f = jnp.fft.rfftfreq(n)
+    cut = jnp.where(jnp.isfinite(period) & (period > 0), 1.0 / (below * jnp.where(period > 0, period, 1.0)), 0.0)
+    return w * jnp.fft.irfft(jnp.where(f >= cut, F, 0.0), n=n)
 
 
 def shape_index(x, mask, period, min_length: int = 5):
@@ -291,16 +333,78 @@ def control_error(pv, sp, mask):
     return jnp.where(has_sp, jnp.where(w, sp, 0.0) - pv, -pv)
 
 
-def indicators(op, pv, sp, mask) -> Indicators:
-    """Every indicator of one loop (see `Indicators`); `sp` all NaN when no
-    setpoint was recorded. Pure and vmappable."""
-    w = (mask > 0).astype(op.dtype)
-    e = control_error(pv, sp, mask)
-    period, regularity, share = oscillation(e, w)
-    ngi, nli = bicoherence(e, w)
+def _at(op, pv, e, w, p0, ngi, nli) -> Indicators:
+    """The indicators of one record whose dominant period is `p0`."""
+    period, reg = regularity(e, w, p0)
     pair = jnp.concatenate([jnp.zeros((1,), w.dtype), w[1:] * w[:-1]])
     dpv = jnp.concatenate([jnp.zeros((1,), pv.dtype), jnp.diff(pv)]) * pair
     return Indicators(
-        period=period, regularity=regularity, share=share, periods=_count(w) / period,
+        period=period, regularity=reg, share=jnp.zeros_like(reg), periods=_count(w) / period,
         horch=horch_phase(op, e, w, period), shape_op=shape_index(op, w, period), shape_pv=shape_index(pv, w, period),
         ngi=ngi, nli=nli, stuck_pv=stuck_share(op, pv, w, period), stuck_dpv=stuck_share(op, dpv, w, period))
+
+
+def _whole(op, pv, e, w) -> Indicators:
+    p0, share = dominant_period(e, w)
+    ind = _at(op, pv, e, w, p0, *bicoherence(e, w))
+    return eqx.tree_at(lambda i: i.share, ind, share)
+
+
+def _segmented(op, pv, e, w, segment: int) -> Indicators:
+    """The indicators of a record longer than `segment` samples, read in the fewest
+    consecutive segments of equal length (at most `segment` real samples each): the
+    dominant period and its share from the segments' averaged Hann-windowed
+    periodogram (Welch: the window keeps a slow swing's leakage off the line, and
+    the line must be a local maximum, not the swing's lobe at the longest period
+    searched; the share is of the power left when the components slower than a
+    third of the line's frequency are removed),
+    every other indicator the median over the segments of its value at that period,
+    with the components slower than a third of its frequency removed (`highpass`:
+    a swing that fills a segment would otherwise set the zero crossings); `periods`
+    counts the periods in the whole record."""
+    n = e.shape[0]
+    count = _count(w)
+    k = jnp.ceil(count / segment)
+    m = -(-n // segment)  # the most segments a record of n samples needs
+    s = jnp.arange(m)
+    lo = jnp.floor(s * count / k).astype(jnp.int32)
+    hi = jnp.floor((s + 1) * count / k).astype(jnp.int32)
+    used = s < k
+    j = jnp.arange(segment)
+    zeros = jnp.zeros((segment,), e.dtype)
+
+    def cut(x, a, b, on):
+        piece = jax.lax.dynamic_slice(jnp.concatenate([x, zeros]), (a,), (segment,))
+        return piece, j < jnp.where(on, b - a, 0)
+
+    def take(a, b, on):
+        (u, keep), (y, _), (x, _), (ww, _) = (cut(x, a, b, on) for x in (op, pv, e, w))
+        return u, y, x, ww * keep
+
+    ops, pvs, es, ws = jax.vmap(take)(lo, hi, used)
+    f, P, smooth, counts = jax.vmap(lambda x, ww: _periodogram(x, ww, taper=True))(es, ws)
+    weight = used.astype(e.dtype)[:, None]
+    P_mean, smooth_mean = (jnp.sum(weight * x, axis=0) / jnp.maximum(k, 1.0) for x in (P, smooth))
+    p0, share = _peak(f[0], P_mean, smooth_mean, jnp.min(jnp.where(used, counts, jnp.inf)), 4.0, 3.0,
+                      local=True, below=3.0)
+
+    def one(u, y, x, ww):
+        u, y, x = (highpass(v, ww, p0) for v in (u, y, x))
+        return _at(u, y, x, ww, p0, *bicoherence(x, ww))
+
+    each = jax.vmap(one)(ops, pvs, es, ws)
+    median = jax.tree.map(lambda x: jnp.nanmedian(jnp.where(used, x, jnp.nan)), each)
+    return eqx.tree_at(lambda i: (i.share, i.periods), median, (share, count / median.period))
+
+
+def indicators(op, pv, sp, mask, segment: int | None = None) -> Indicators:
+    """Every indicator of one loop (see `Indicators`); `sp` all NaN when no
+    setpoint was recorded. A record of more than `segment` real samples is read in
+    segments (see the verdict's module notes); `None`: whole. Pure and vmappable."""
+    w = (mask > 0).astype(op.dtype)
+    e = control_error(pv, sp, mask)
+    whole = _whole(op, pv, e, w)
+    if segment is None or op.shape[0] <= segment:
+        return whole
+    long = _count(w) > segment
+    return jax.tree.map(lambda a, b: jnp.where(long, a, b), _segmented(op, pv, e, w, segment), whole)

@@ -58,6 +58,13 @@ class VerdictSettings(eqx.Module):
       setpoint moves make, not a small nonlinearity bending the fit).
     - `crossval_folds`, `crossval_horizon`: the blocked cross-validation's blocks
       and prediction horizon (samples).
+    - `segment`: the indicators read a record of more than `segment` real samples
+      in the fewest consecutive segments of equal length, at most `segment` each (a
+      Welch-averaged periodogram for the dominant period, the median over the
+      segments for the rest; see the module notes). The default is the longest
+      record of the realistic fleet the probability is calibrated on, so a long
+      record's indicators stay in the range the calibration has seen; `None`
+      reads every record whole.
     - `runaway_fitness`: a fitted model whose simulation fitness (34) on the record
       is below this (%), or not finite, has run away (an unstable fit: its error
       is 10^4 times PV's spread at the default); its model-based evidence is then
@@ -87,6 +94,7 @@ class VerdictSettings(eqx.Module):
     crossval_folds: int = eqx.field(static=True, default=4)
     crossval_horizon: int = eqx.field(static=True, default=5)
     runaway_fitness: float = eqx.field(static=True, default=-1e6)
+    segment: int | None = eqx.field(static=True, default=3000)
 
     def __check_init__(self):
         check_counts(self, positive=("prediction_horizon", "prediction_init_count", "crossval_horizon"))
@@ -94,5 +102,7 @@ class VerdictSettings(eqx.Module):
             raise ValueError(f"`crossval_folds` must be a whole number of at least 2, got {self.crossval_folds!r}")
         if not 0.0 < self.threshold < 1.0:
             raise ValueError(f"`threshold` must be a probability in (0, 1), got {self.threshold!r}")
+        if self.segment is not None:
+            check_counts(self, positive=("segment",))
         if self.trend_degree is not None:
             check_counts(self, nonnegative=("trend_degree",))

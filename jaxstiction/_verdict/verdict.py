@@ -31,7 +31,13 @@ valve at all.
    1999: odd cross-correlation for a sticky valve); the triangular-against-
    sinusoidal shape of OP's and PV's half-cycles (He et al. 2007); the
    bicoherence's non-Gaussianity (Choudhury et al. 2004); the share of OP's travel
-   made while PV stands still (the PV–OP plot's flat tops).
+   made while PV stands still (the PV–OP plot's flat tops). A record of more than
+   `segment` real samples (the longest the calibration has seen) is read in
+   segments: over days of data a slow swing can carry more power than a valve's
+   fast limit cycle, and a whole-record periodogram would read the swing. The
+   dominant period and its share come from the segments' averaged periodogram
+   (Welch), every other indicator is the median over the segments of its value at
+   that period, and `periods` counts the periods in the whole record.
 4. *The limit cycle* (`limit_cycle`), reported beside the verdict: the fitted Kano
    model, and the same model with its valve repaired, closed again around the PI
    identified from the record, without noise. Does the fitted valve make the
@@ -309,7 +315,7 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
     model_wins = ok & (band >= settings.min_band) & ~persists & (
         wins(gain, gain_est) | (wins(*pred) & (band >= settings.prediction_band)))
 
-    ind = indicators(op, pv, sp, loop.mask)
+    ind = indicators(op, pv, sp, loop.mask, settings.segment)
     cv = crossval_gain(op, pv, loop.mask, folds=settings.crossval_folds, horizon=settings.crossval_horizon)
     nan = jnp.asarray(jnp.nan, op.dtype)
     x = features(ind, cv, jnp.where(ok, gain, nan), jnp.where(ok, pred[0], nan), jnp.where(ok, gain_est, nan),
