@@ -177,30 +177,31 @@ def horch_phase(op, e, mask, period):
     return jnp.where(jnp.isfinite(period), jnp.abs(jnp.sin(jnp.angle(c))), jnp.nan)
 
 
-def lowpass(x, mask, period, harmonics: float = 7.5):
-    """`x` (a quadratic trend removed) with every component faster than `harmonics`
-    times the oscillation's frequency 1/`period` removed (an FFT brick wall); the
-    whole detrended signal when `period` is not finite."""
+def _brickwall(x, mask, period, keep):
+    """`x` (a quadratic trend removed) with only the frequencies `f` (cycles per
+    sample) where `keep(f, period)` holds (an FFT brick wall); the whole detrended
+    signal when `period` is not finite."""
     n = x.shape[0]
     w = (mask > 0).astype(x.dtype)
     x = _weighted_detrend(x, w, 2)
     F = jnp.fft.rfft(x)
     f = jnp.fft.rfftfreq(n)
-    cut = jnp.where(jnp.isfinite(period) & (period > 0), harmonics / jnp.where(period > 0, period, 1.0), 1.0)
-    return w * jnp.fft.irfft(jnp.where(f <= cut, F, 0.0), n=n)
+    finite = jnp.isfinite(period) & (period > 0)
+    return w * jnp.fft.irfft(jnp.where(~finite | keep(f, jnp.where(finite, period, 1.0)), F, 0.0), n=n)
+
+
+def lowpass(x, mask, period, harmonics: float = 7.5):
+    """`x` (a quadratic trend removed) with every component faster than `harmonics`
+    times the oscillation's frequency 1/`period` removed (an FFT brick wall); the
+    whole detrended signal when `period` is not finite."""
+    return _brickwall(x, mask, period, lambda f, p: f <= harmonics / p)
 
 
 def highpass(x, mask, period, below: float = 3.0):
     """`x` (a quadratic trend removed) with every component slower than a `below`-th
     of the oscillation's frequency 1/`period` removed (an FFT brick wall); the whole
     detrended signal when `period` is not finite."""
-    n = x.shape[0]
-    w = (mask > 0).astype(x.dtype)
-    x = _weighted_detrend(x, w, 2)
-    F = jnp.fft.rfft(x)
-    f = jnp.fft.rfftfreq(n)
-    cut = jnp.where(jnp.isfinite(period) & (period > 0), 1.0 / (below * jnp.where(period > 0, period, 1.0)), 0.0)
-    return w * jnp.fft.irfft(jnp.where(f >= cut, F, 0.0), n=n)
+    return _brickwall(x, mask, period, lambda f, p: f >= 1.0 / (below * p))
 
 
 def shape_index(x, mask, period, min_length: int = 5):
@@ -370,16 +371,12 @@ def _segmented(op, pv, e, w, segment: int) -> Indicators:
     lo = jnp.floor(s * count / k).astype(jnp.int32)
     hi = jnp.floor((s + 1) * count / k).astype(jnp.int32)
     used = s < k
-    j = jnp.arange(segment)
-    zeros = jnp.zeros((segment,), e.dtype)
-
-    def cut(x, a, b, on):
-        piece = jax.lax.dynamic_slice(jnp.concatenate([x, zeros]), (a,), (segment,))
-        return piece, j < jnp.where(on, b - a, 0)
+    signals = jnp.stack([op, pv, e, w])
+    signals = jnp.concatenate([signals, jnp.zeros((4, segment), e.dtype)], axis=1)  # room for the last cut
 
     def take(a, b, on):
-        (u, keep), (y, _), (x, _), (ww, _) = (cut(x, a, b, on) for x in (op, pv, e, w))
-        return u, y, x, ww * keep
+        u, y, x, ww = jax.lax.dynamic_slice(signals, (jnp.zeros_like(a), a), (4, segment))
+        return u, y, x, ww * (jnp.arange(segment) < jnp.where(on, b - a, 0))
 
     ops, pvs, es, ws = jax.vmap(take)(lo, hi, used)
     f, P, smooth, counts = jax.vmap(lambda x, ww: _periodogram(x, ww, taper=True))(es, ws)
