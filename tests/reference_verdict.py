@@ -85,6 +85,19 @@ def segmented(op, pv, segment):
     return dict(out, share=share, periods=n / out["period"])
 
 
+def cycle_segmented(e, segment, min_periods=3.0):
+    """`(amplitude, period)` of the oscillation in `e` cut into equal pieces of
+    `segment` samples (`segment` must divide its length): the period and share from
+    the pieces' averaged Hann-windowed periodogram, the amplitude sqrt(2 share) times
+    the root mean square of the whole `e` high-passed at a third of that frequency."""
+    k = len(e) // segment
+    assert k * segment == len(e)
+    spectra = [periodogram(x, segment, taper=True) for x in e.reshape(k, segment)]
+    p0, share = peak(spectra[0][0], np.mean([s[1] for s in spectra], axis=0), np.mean([s[2] for s in spectra], axis=0),
+                     segment, min_periods=min_periods, local=True, below=3.0)
+    return np.sqrt(2 * share) * np.sqrt(np.mean(highpass(e, p0) ** 2)), p0
+
+
 def horch_phase(op, e, period):
     u, x = detrend(op), detrend(e)
     t = np.arange(len(op))

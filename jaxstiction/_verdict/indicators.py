@@ -109,16 +109,29 @@ def dominant_period(e, mask, min_period: float = 4.0, min_periods: float = 3.0):
     return _peak(*_periodogram(e, mask), min_period, min_periods)
 
 
-def cycle(e: Float[Array, " time"], w: Float[Array, " time"], min_periods: float = 3.0):
+def cycle(e: Float[Array, " time"], w: Float[Array, " time"], min_periods: float = 3.0,
+          segment: int | None = None):
     r"""`(amplitude, period)` of the oscillation in `e` over the samples with `w > 0`:
     the period of its strongest component (`dominant_period`, at least `min_periods`
     of them in the samples counted) and $\sqrt{2\,\text{share}}\;\sigma_e$, the
-    amplitude of the sine that carries the power within a factor 1.5 of it."""
+    amplitude of the sine that carries the power within a factor 1.5 of it.
+
+    Over more than `segment` real samples (consecutive ones) the period and share
+    are read as the indicators read them (`welch_period`), and $\sigma_e$ is that of
+    `e` with the components slower than a third of the line's frequency removed
+    (`highpass`), so a slow swing does not pass for the oscillation."""
     period, share = dominant_period(e, w, min_periods=min_periods)
     count = jnp.maximum(jnp.sum(w), 1.0)
     mean = jnp.sum(w * e) / count
     std = jnp.sqrt(jnp.sum(w * (e - mean) ** 2) / count)
-    return jnp.sqrt(2.0 * share) * std, period
+    whole = (jnp.sqrt(2.0 * share) * std, period)
+    if segment is None or e.shape[0] <= segment:
+        return whole
+    p0, share_long = welch_period(e, w, segment, min_periods)
+    x = highpass(e, w, p0)
+    std_long = jnp.sqrt(jnp.sum(w * x**2) / count)
+    long = jnp.sum(w) > segment
+    return tuple(jnp.where(long, a, b) for a, b in zip((jnp.sqrt(2.0 * share_long) * std_long, p0), whole))
 
 
 def oscillation(e: Float[Array, " time"], mask: Float[Array, " time"]):
@@ -351,39 +364,69 @@ def _whole(op, pv, e, w) -> Indicators:
     return eqx.tree_at(lambda i: i.share, ind, share)
 
 
-def _segmented(op, pv, e, w, segment: int) -> Indicators:
-    """The indicators of a record longer than `segment` samples, read in the fewest
-    consecutive segments of equal length (at most `segment` real samples each): the
-    dominant period and its share from the segments' averaged Hann-windowed
-    periodogram (Welch: the window keeps a slow swing's leakage off the line, and
-    the line must be a local maximum, not the swing's lobe at the longest period
-    searched; the share is of the power left when the components slower than a
-    third of the line's frequency are removed),
-    every other indicator the median over the segments of its value at that period,
-    with the components slower than a third of its frequency removed (`highpass`:
-    a swing that fills a segment would otherwise set the zero crossings); `periods`
-    counts the periods in the whole record."""
-    n = e.shape[0]
+def _cuts(w, segment: int):
+    """`(lo, hi, used, k)`: the fewest consecutive segments of equal length, at most
+    `segment` samples each, that cover the real samples (`w > 0`, consecutive): the
+    i-th spans `lo[i]:hi[i]` where `used[i]`; `k` of them are used."""
+    n = w.shape[0]
     count = _count(w)
+    first = jnp.argmax(w > 0).astype(jnp.int32)
     k = jnp.ceil(count / segment)
     m = -(-n // segment)  # the most segments a record of n samples needs
     s = jnp.arange(m)
-    lo = jnp.floor(s * count / k).astype(jnp.int32)
-    hi = jnp.floor((s + 1) * count / k).astype(jnp.int32)
-    used = s < k
-    signals = jnp.stack([op, pv, e, w])
-    signals = jnp.concatenate([signals, jnp.zeros((4, segment), e.dtype)], axis=1)  # room for the last cut
+    lo = first + jnp.floor(s * count / k).astype(jnp.int32)
+    hi = first + jnp.floor((s + 1) * count / k).astype(jnp.int32)
+    return lo, hi, s < k, k
+
+
+def _pieces(signals, w, lo, hi, used, segment: int):
+    """The segments `lo:hi` (`_cuts`) of the rows of `signals` and of the weights
+    `w`, each `segment` samples long with the weights 0 past its end."""
+    stack = jnp.concatenate([signals, w[None]])
+    stack = jnp.concatenate([stack, jnp.zeros((stack.shape[0], segment), stack.dtype)], axis=1)  # room for the last cut
 
     def take(a, b, on):
-        u, y, x, ww = jax.lax.dynamic_slice(signals, (jnp.zeros_like(a), a), (4, segment))
-        return u, y, x, ww * (jnp.arange(segment) < jnp.where(on, b - a, 0))
+        piece = jax.lax.dynamic_slice(stack, (jnp.zeros_like(a), a), (stack.shape[0], segment))
+        return piece[:-1], piece[-1] * (jnp.arange(segment) < jnp.where(on, b - a, 0))
 
-    ops, pvs, es, ws = jax.vmap(take)(lo, hi, used)
+    return jax.vmap(take)(lo, hi, used)
+
+
+def _welch(es, ws, used, k, min_periods: float):
+    """`(period, share)` of the line of the segments' averaged Hann-windowed
+    periodogram (see `welch_period`)."""
     f, P, smooth, counts = jax.vmap(lambda x, ww: _periodogram(x, ww, taper=True))(es, ws)
-    weight = used.astype(e.dtype)[:, None]
+    weight = used.astype(es.dtype)[:, None]
     P_mean, smooth_mean = (jnp.sum(weight * x, axis=0) / jnp.maximum(k, 1.0) for x in (P, smooth))
-    p0, share = _peak(f[0], P_mean, smooth_mean, jnp.min(jnp.where(used, counts, jnp.inf)), 4.0, 3.0,
-                      local=True, below=3.0)
+    return _peak(f[0], P_mean, smooth_mean, jnp.min(jnp.where(used, counts, jnp.inf)), 4.0, min_periods,
+                 local=True, below=3.0)
+
+
+def welch_period(e, w, segment: int, min_periods: float = 3.0):
+    """`(period, share)` of the oscillation in `e`, its real samples (consecutive) cut
+    into the fewest segments of equal length, at most `segment` each: the line of the
+    segments' averaged Hann-windowed periodogram (Welch: the window keeps a slow
+    swing's leakage off the line), which must be a local maximum (not the swing's
+    lobe at the longest period searched, `min_periods` periods in a segment), and the
+    share of the power left when the components slower than a third of the line's
+    frequency are removed that lies within a factor 1.5 of it."""
+    lo, hi, used, k = _cuts(w, segment)
+    signals, ws = _pieces(e[None], w, lo, hi, used, segment)
+    return _welch(signals[:, 0], ws, used, k, min_periods)
+
+
+def _segmented(op, pv, e, w, segment: int) -> Indicators:
+    """The indicators of a record longer than `segment` samples, read in the fewest
+    consecutive segments of equal length (at most `segment` real samples each): the
+    dominant period and its share from `welch_period`, every other indicator the
+    median over the segments of its value at that period, with the components slower
+    than a third of its frequency removed (`highpass`: a swing that fills a segment
+    would otherwise set the zero crossings); `periods` counts the periods in the
+    whole record."""
+    lo, hi, used, k = _cuts(w, segment)
+    signals, ws = _pieces(jnp.stack([op, pv, e]), w, lo, hi, used, segment)
+    ops, pvs, es = signals[:, 0], signals[:, 1], signals[:, 2]
+    p0, share = _welch(es, ws, used, k, 3.0)
 
     def one(u, y, x, ww):
         u, y, x = (highpass(v, ww, p0) for v in (u, y, x))
@@ -391,7 +434,7 @@ def _segmented(op, pv, e, w, segment: int) -> Indicators:
 
     each = jax.vmap(one)(ops, pvs, es, ws)
     median = jax.tree.map(lambda x: jnp.nanmedian(jnp.where(used, x, jnp.nan)), each)
-    return eqx.tree_at(lambda i: (i.share, i.periods), median, (share, count / median.period))
+    return eqx.tree_at(lambda i: (i.share, i.periods), median, (share, _count(w) / median.period))
 
 
 def indicators(op, pv, sp, mask, segment: int | None = None) -> Indicators:

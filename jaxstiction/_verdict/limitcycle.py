@@ -80,11 +80,13 @@ def _match(a, b):
 
 
 def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: Float[Array, " time"],
-                mask: Float[Array, " time"], min_controller_fit: float = MIN_CONTROLLER_FIT) -> LimitCycle:
+                mask: Float[Array, " time"], min_controller_fit: float = MIN_CONTROLLER_FIT,
+                segment: int | None = None) -> LimitCycle:
     """The limit-cycle check of one loop (see the module notes) from its
     [`jaxstiction.LoopFit`][] `fit` (its `physical` model and its `S`, `J`) and record:
     `op`, `pv`, `sp` (all NaN when no setpoint is recorded) and `mask` (1 on real
-    samples, which come first). Pure; vmaps over loops."""
+    samples, which come first); over more than `segment` samples the oscillations
+    are read in segments (`cycle`). Pure; vmaps over loops."""
     w = (mask > 0).astype(pv.dtype)
     n = jnp.sum(w)
     controller = identify_controller(op, pv, sp, mask)
@@ -105,7 +107,7 @@ def limit_cycle(fit, op: Float[Array, " time"], pv: Float[Array, " time"], sp: F
     repaired = with_valve(fit.physical, jnp.zeros_like(fit.S), jnp.zeros_like(fit.J))
     e_k, e_l, e_r = error(fit.physical), error(repaired), jnp.where(w > 0, r - pv, 0.0)
     # periods up to half the samples read: a slow cycle holds few in a short record
-    (a_k, p_k), (a_l, p_l), (a_r, p_r) = (cycle(e, weights, min_periods=2.0)
+    (a_k, p_k), (a_l, p_l), (a_r, p_r) = (cycle(e, weights, min_periods=2.0, segment=segment)
                                           for e, weights in ((e_k, late), (e_l, late), (e_r, w)))
     stable = closed_loop_stable(repaired, controller, op_lo, op_hi)
     # a root within 1 + 1/n of the unit circle grows by at most e over the record

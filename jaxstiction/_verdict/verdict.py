@@ -320,7 +320,7 @@ def verdict(fit, loop: Loop, settings: VerdictSettings = VerdictSettings(),
     nan = jnp.asarray(jnp.nan, op.dtype)
     x = features(ind, cv, jnp.where(ok, gain, nan), jnp.where(ok, pred[0], nan), jnp.where(ok, gain_est, nan),
                  jnp.where(judged, band, nan))
-    cycle = limit_cycle(fit, op, pv, sp, loop.mask)
+    cycle = limit_cycle(fit, op, pv, sp, loop.mask, segment=settings.segment)
     cycle = eqx.tree_at(lambda c: c.reproduction, cycle, jnp.where(ok, cycle.reproduction, nan))
     probability = calibration.probability(x)
     measures = gate_measures(op, pv, sp, loop.mask)

@@ -19,6 +19,11 @@ SETTLE_TOLERANCE = 0.05
 """A loop has settled once its control error stays within this share of its peak
 (`settling_time`)."""
 
+SEGMENT = 3000
+"""A run read over more than this many samples has its oscillation read in segments
+(`cycle`), as the verdict's indicators read a long record (`VerdictSettings.segment`):
+a slow swing of the disturbance does not pass for the oscillation."""
+
 
 class LoopStats(eqx.Module):
     """What one run (or the record) shows, over the real samples:
@@ -29,7 +34,8 @@ class LoopStats(eqx.Module):
     - `amplitude`, `period`: the oscillation of SP − PV: the period (samples) of its
       strongest component (`dominant_period`) and the amplitude of the sine that
       carries the power within a factor 1.5 of that frequency,
-      $\\sqrt{2\\,\\text{share}}\\;\\sigma_e$;
+      $\\sqrt{2\\,\\text{share}}\\;\\sigma_e$ (over more than `SEGMENT` samples
+      read in segments, as `cycle` reads them);
     - `travel`: valve travel, the sum of |Δ valve|, in % of span per hour;
     - `reversals`: valve reversals per hour (moves of more than the threshold
       against the previous direction of travel).
@@ -84,7 +90,7 @@ def loop_stats(pv, sp_stat, valve, mask, ts, threshold) -> LoopStats:
     e = (sp_stat - pv) * w
     e_std, e_ptp = std_ptp(e)
     pv_std, pv_ptp = std_ptp(pv)
-    amplitude, period = cycle(e, w)
+    amplitude, period = cycle(e, w, segment=SEGMENT)
     pair = w[1:] * w[:-1]
     travel = jnp.sum(pair * jnp.abs(jnp.diff(valve))) / hours
     reversals = count_reversals(valve, w, threshold) / hours
