@@ -13,16 +13,18 @@ from .._control.closedloop import closed_loop
 from .._control.controller import Controller
 from .._models import LoopModel
 from .._verdict.indicators import cycle
+from .._verdict.settings import VerdictSettings
 
 
 SETTLE_TOLERANCE = 0.05
 """A loop has settled once its control error stays within this share of its peak
 (`settling_time`)."""
 
-SEGMENT = 3000
+SEGMENT = VerdictSettings().segment
 """A run read over more than this many samples has its oscillation read in segments
-(`cycle`), as the verdict's indicators read a long record (`VerdictSettings.segment`):
-a slow swing of the disturbance does not pass for the oscillation."""
+(`cycle`), as the verdict's indicators read a long record (the default
+`VerdictSettings.segment`): a slow swing of the disturbance does not pass for the
+oscillation."""
 
 
 class LoopStats(eqx.Module):
