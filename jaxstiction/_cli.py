@@ -292,10 +292,15 @@ def cmd_screen(args):
         from ._screen.whatif import read_criticality
 
         criticality = read_criticality(args.criticality)  # a bad table fails before any loop is fitted
+    by_valve = bool(args.by_valve)
+    if args.tags:
+        from ._io.tags import read_tags
+
+        by_valve = read_tags(args.tags)  # as the criticality table: before any loop is fitted
     settings = screen_settings(args)
     rep = screen(args.paths, settings, ts=args.ts, progress=progress, scheduler=args.scheduler,
                  pictures=bool(args.out), diagnose=args.diagnose, recursive=args.recursive,
-                 decimate=args.decimate, criticality=criticality, window=args.window)
+                 decimate=args.decimate, criticality=criticality, window=args.window, by_valve=by_valve)
     if args.out:
         write_screen_outputs(rep, args.out)
     # evidence: the Kano valve's held-out gain over a linear valve (points), in
@@ -312,6 +317,10 @@ def cmd_screen(args):
             lines.append(f"{e['name']:<16} error  {e['status']}")
     if args.whatif:
         lines += _ranking_text(rep.loops)
+    if rep.valves is not None:
+        from ._screen.valves import valves_text
+
+        lines += valves_text(rep.valves)
     summary = rep.summary_line() + f" ({time.time() - t0:.0f} s)"
     lines.append(summary)
     if args.json:
@@ -455,7 +464,7 @@ def cmd_trend(args):
 
     mapping = None
     if args.tags:
-        from ._whatif.trend import read_tags
+        from ._io.tags import read_tags
 
         mapping = read_tags(args.tags)
     report = valve_trend(args.paths, mapping=mapping, ts=args.ts, recursive=args.recursive,
@@ -576,6 +585,12 @@ def build_parser():
     s.add_argument("--threshold", type=_probability, default=None, metavar="P",
                    help="call a loop sticky from this stiction probability (default 0.5; lower finds more sticky "
                         "valves and raises more false alarms)")
+    s.add_argument("--by-valve", action="store_true",
+                   help="also one verdict per valve, its recordings grouped by tag (a `tag` column, else the file "
+                        "name up to its last _ or -): the verdict of most of its judged recordings")
+    s.add_argument("--tags", metavar="FILE", default=None,
+                   help="implies --by-valve: the valve of each recording, a JSON object name -> tag (or a "
+                        "labels.json whose `loops` give each a `valve`), or a CSV with name and tag columns")
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")

@@ -10,8 +10,9 @@ import pytest
 from helpers import run
 
 from jaxstiction import LoopDataError
+from jaxstiction._io.tags import default_tag, read_tags
 from jaxstiction._screen.whatif import rank_by_benefit, read_criticality
-from jaxstiction._whatif.trend import band_changes, default_tag, read_tags
+from jaxstiction._whatif.trend import band_changes
 
 
 CONTRACT = ("error_std_as_is", "error_std_repaired", "error_std_compensated", "error_std_repaired_interval",

@@ -127,6 +127,9 @@ tr.r-inconclusive td:first-child { box-shadow: inset 4px 0 #b26a00; }
 .sub { color: #777; font-size: 11px; }
 td.pic img { width: 100%; max-width: 124px; height: auto; border: 1px solid #ccc; display: block; }
 svg text { font: 10px system-ui, sans-serif; fill: #444; }
+table.valves { border-collapse: collapse; margin: 4px 0 6px; }
+table.valves th, table.valves td { padding: 2px 8px 2px 4px; border-bottom: 1px solid #e3e3e3; text-align: left; }
+table.valves td.num, table.valves th.num { text-align: right; font-variant-numeric: tabular-nums; }
 """
 
 # Sorting: a click on a heading sorts by that column (again: the other way; `#`
@@ -348,6 +351,27 @@ def _summary(loops: list[dict]) -> str:
 </div>"""
 
 
+def _valves(valves: list[dict] | None) -> str:
+    """`screen --by-valve`: one row per valve, its verdict first (`valve_verdicts`)."""
+    if valves is None:
+        return ""
+    e = html.escape
+    rows = "".join(
+        f'<tr class="r-{v["verdict"]}"><td>{e(str(v["tag"]))}</td><td>{_pill(v["verdict"])}</td>'
+        f'<td class="num">{_num(v["stiction_probability"])}</td><td class="num">{v["sticky"]}</td>'
+        f'<td class="num">{v["not_sticky"]}</td><td class="num">{v["inconclusive"]}</td>'
+        f'<td>{e(", ".join(map(str, v["recordings"])))}</td><td class="note">{e(v["reason"] or "")}</td></tr>'
+        for v in valves)
+    sticky = sum(v["verdict"] == "stiction" for v in valves)
+    return f"""<details class="valves" open><summary><b>Per valve</b>: {len(valves)} valve{
+        "s" * (len(valves) != 1)}, {sticky} sticky (the verdict of most of a valve's judged recordings;
+p the mean of their stiction probabilities)</summary>
+<table class="valves"><thead><tr><th>valve</th><th>verdict</th><th class="num">p</th>
+<th class="num">sticky</th><th class="num">not sticky</th><th class="num">inconclusive</th>
+<th>recordings</th><th>why inconclusive</th></tr></thead>
+<tbody>{rows}</tbody></table></details>"""
+
+
 def _controls(loops: list[dict]) -> str:
     e = html.escape
     boxes = "".join(f'<label><input type="checkbox" name="verdict" value="{v}" checked> {_pill(v)}</label>'
@@ -391,6 +415,7 @@ def write_html(report, path: Path) -> Path:
 Click a column heading to sort (again to reverse; <b>#</b> restores the rank), hover over a heading for its
 meaning, and click a picture to enlarge it.</p>
 {_summary(loops)}
+{_valves(getattr(report, "valves", None))}
 {_legend()}
 {_controls(loops)}
 <table class="loops" id="loops"><colgroup>{cols}</colgroup>

@@ -149,9 +149,11 @@ def rank(results: Iterable[dict]) -> list[dict]:
 
 @dataclasses.dataclass(frozen=True)
 class ScreenReport:
-    """Result of [`jaxstiction.screen`][]: `loops`, ranked (see `rank`), and counts."""
+    """Result of [`jaxstiction.screen`][]: `loops`, ranked (see `rank`), and counts;
+    with `by_valve`, `valves`: one verdict per valve tag (`valve_verdicts`)."""
 
     loops: list
+    valves: list | None = None
 
     @property
     def counts(self) -> dict:
@@ -161,12 +163,16 @@ class ScreenReport:
 
     def summary_line(self) -> str:
         c = self.counts
-        return (f"screen: {c['loops']} loops: {c['ok']} ok, {c['errors']} error{'s' * (c['errors'] != 1)}, "
+        line = (f"screen: {c['loops']} loops: {c['ok']} ok, {c['errors']} error{'s' * (c['errors'] != 1)}, "
                 f"{c['sticky']} sticky")
+        if self.valves is not None:
+            sticky = sum(v["verdict"] == "stiction" for v in self.valves)
+            line += f"; {len(self.valves)} valve{'s' * (len(self.valves) != 1)}: {sticky} sticky"
+        return line
 
     def to_json(self) -> dict:
         loops = [{k: v for k, v in r.items() if k not in ("figure", "whatif_figure")} for r in self.loops]
-        return {"loops": loops, "summary": self.counts}
+        return {"loops": loops, "summary": self.counts, **({} if self.valves is None else {"valves": self.valves})}
 
 
 @contextlib.contextmanager
@@ -188,7 +194,7 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
            ts: float | None = None, progress: bool = False, scheduler: Any = None,
            pictures: bool = False, diagnose: bool = False, recursive: bool = False,
            decimate: int = 1, criticality: Mapping[str, float] | None = None,
-           window: int | None = None) -> ScreenReport:
+           window: int | None = None, by_valve: bool | Mapping[str, str] = False) -> ScreenReport:
     """Screen every loop under `paths` (CSV files, ISDB `.mat` files, folders of them)
     for sticky valves, and name the cause of the others.
 
@@ -222,6 +228,10 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     - `criticality`: weights per tag for the maintenance ranking (with
       `settings.whatif`): the sticky loops are ranked by the predicted benefit of a
       repair in % of their PV range times their weight (`rank_by_benefit`).
+    - `by_valve`: also one verdict per valve (`ScreenReport.valves`), the
+      recordings grouped by tag: `True` takes a file's `tag` column, else its name
+      up to the last `_` or `-`; a mapping (recording name or file stem → tag,
+      e.g. from `read_tags`) is asked first.
 
     **Returns:** a [`jaxstiction.ScreenReport`][].
 
@@ -248,6 +258,11 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
         from .whatif import rank_by_benefit
 
         ranked = rank_by_benefit(ranked, dict(criticality) if criticality else None)
-    return ScreenReport(loops=ranked)
+    valves = None
+    if by_valve is not False:
+        from .valves import valve_verdicts
+
+        valves = valve_verdicts(ranked, None if by_valve is True else by_valve)
+    return ScreenReport(loops=ranked, valves=valves)
 
 

@@ -19,10 +19,7 @@ to carry a trend.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
-import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -32,70 +29,8 @@ from .._checks import error_line, LoopDataError, one_line
 from .._estimate.report import fit
 from .._estimate.settings import FULL_SEARCH_ESTIMATE, Settings
 from .._io.read import find_loop_files, list_loops, loop_name, read_loop
+from .._io.tags import natural_key, tag_of
 from .._misc import json_number as _r
-
-
-def read_tags(path) -> dict[str, str]:
-    """A mapping recording name → valve tag from `path`: a JSON object `{name: tag}`,
-    or a `labels.json` whose `loops` give each name a `valve`; or a CSV file with
-    `name` and `tag` (or `valve`) columns.
-
-    **Raises:** a one-line `LoopDataError` when the file cannot be read or has no
-    such mapping."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise LoopDataError(f"{path}: cannot read the tags file ({e.strerror or e})") from e
-    if path.suffix.lower() == ".json":
-        try:
-            data = json.loads(text)
-        except ValueError as e:
-            raise LoopDataError(f"{path}: not JSON ({one_line(e)})") from e
-        if isinstance(data, dict) and isinstance(data.get("loops"), dict):
-            out = {str(k): str(v["valve"]) for k, v in data["loops"].items() if isinstance(v, dict) and "valve" in v}
-        elif isinstance(data, dict):
-            out = {str(k): str(v) for k, v in data.items() if isinstance(v, (str, int, float))}
-        else:
-            out = {}
-    else:
-        rows = list(csv.DictReader(text.splitlines()))
-        cols = {c.strip().lower(): c for c in (rows[0] if rows else {}) if c}
-        name, tag = cols.get("name"), cols.get("tag") or cols.get("valve")
-        if name is None or tag is None:
-            raise LoopDataError(f"{path}: the tags file needs `name` and `tag` columns")
-        out = {str(r[name]).strip(): str(r[tag]).strip() for r in rows}
-    if not out:
-        raise LoopDataError(f"{path}: no recording name -> tag mapping found")
-    return out
-
-
-def _tag_column(path: Path):
-    """The first value of a `tag` column of a CSV file, or `None`."""
-    if path.suffix.lower() != ".csv":
-        return None
-    try:
-        with open(path, newline="") as f:
-            head = f.readline()
-            delim = max(",;\t", key=head.count)
-            cols = [c.strip().lower() for c in head.strip().split(delim)]
-            if "tag" not in cols:
-                return None
-            row = next(csv.reader(f, delimiter=delim), None)
-    except OSError:
-        return None
-    return row[cols.index("tag")].strip() if row and len(row) > cols.index("tag") else None
-
-
-def default_tag(name: str) -> str:
-    """The tag of a recording named `name` with no mapping nor `tag` column: the name
-    up to its last `_` or `-` (the name itself when it has neither)."""
-    m = re.match(r"^(.+)[_-][^_-]+$", name)
-    return m.group(1) if m else name
-
-
-def _natural(s: str):
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
 def band_changes(rows: list[dict]) -> tuple[str, str]:
@@ -155,14 +90,12 @@ def valve_trend(paths, *, mapping: Mapping[str, str] | None = None, ts: float | 
             entries.append((loop_name(path) if not sub else f"{path.stem}:{sub}", path, sub, None))
     groups: dict[str, list] = {}
     for name, path, sub, err in entries:
-        tag = (mapping or {}).get(name) or (mapping or {}).get(path.stem)
-        tag = tag or _tag_column(path) or default_tag(name)
-        groups.setdefault(tag, []).append((name, path, sub, err))
+        groups.setdefault(tag_of(name, path, mapping), []).append((name, path, sub, err))
     valves = []
     settings = dataclasses.replace(settings, validate=0.0)
-    for tag in sorted(groups, key=_natural):
+    for tag in sorted(groups, key=natural_key):
         rows = []
-        for name, path, sub, err in sorted(groups[tag], key=lambda e: _natural(e[0])):
+        for name, path, sub, err in sorted(groups[tag], key=lambda e: natural_key(e[0])):
             row = {"name": name, "file": str(path), "S": None, "J": None, "S_interval": None, "J_interval": None,
                    "fitness": None, "status": err or "ok", "grows": False, "shrinks": False}
             if err is None:
