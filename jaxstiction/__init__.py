@@ -61,6 +61,7 @@ from ._io.read import (
     read_loop as read_loop,
 )
 from ._io.read_mat import list_mat_loops as list_mat_loops
+from ._io.tags import read_tags as read_tags
 from ._loop import decimate as decimate, Loop as Loop, make_loop as make_loop, stack as stack, unstack as unstack
 from ._models import (
     InitialState as InitialState,
@@ -73,6 +74,7 @@ from ._scenarios import make_scenario as make_scenario, Scenario as Scenario, SC
 from ._screen.outputs import write_screen_outputs as write_screen_outputs
 from ._screen.screen import rank as rank, screen as screen, screen_loops as screen_loops, ScreenReport as ScreenReport
 from ._screen.settings import ScreenSettings as ScreenSettings
+from ._screen.valves import valve_verdicts as valve_verdicts
 from ._simulate import Experiment as Experiment, LoopRecord as LoopRecord, simulate_loop as simulate_loop
 from ._verdict.settings import VerdictSettings as VerdictSettings
 from ._verdict.verdict import CAUSES as CAUSES, Verdict as Verdict, verdict as verdict
