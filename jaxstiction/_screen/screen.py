@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 from .._checks import error_line, LoopDataError, LoopDataWarning, one_line
@@ -95,12 +96,24 @@ def _message(e: BaseException) -> str:
     return f"unreadable: {error_line(e, 300)}"
 
 
+def _warn_without_float64(caller: str) -> None:
+    """A warning when JAX runs in float32: the stiction probability was calibrated
+    on float64 evidence. The library never turns float64 on itself."""
+    if not jax.config.jax_enable_x64:
+        warnings.warn(f"jaxstiction.{caller} runs in float32 (jax_enable_x64 is off), but its stiction probability "
+                      "was calibrated on float64 evidence: on the plant development records float32 moves it by "
+                      "up to 0.19. Call jax.config.update('jax_enable_x64', True) before creating any array.",
+                      UserWarning, stacklevel=3)
+
+
 def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSettings = ScreenSettings(), *,
                  progress: Callable[[int], Any] | None = None, scheduler: Any = None,
                  pictures: bool = False) -> list[dict]:
     """Screen loops already in memory. `loops`: a mapping name → [`jaxstiction.Loop`][]
     (real samples only), or `(name, file, op, pv, ts[, sp])` items as from `read_items`.
-    Returns one entry per loop, in input order (see [`jaxstiction.screen`][])."""
+    Returns one entry per loop, in input order (see [`jaxstiction.screen`][]).
+    Warns when JAX runs in float32, as `screen` does."""
+    _warn_without_float64("screen_loops")
     if isinstance(loops, Mapping):
         items, errors = [], []
         for name, lp in loops.items():
@@ -233,11 +246,14 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
       up to the last `_` or `-`; a mapping (recording name or file stem → tag,
       e.g. from `read_tags`) is asked first.
 
-    **Returns:** a [`jaxstiction.ScreenReport`][].
+    **Returns:** a [`jaxstiction.ScreenReport`][]. A `UserWarning` says so when JAX
+    runs in float32: the probability was calibrated on float64 evidence (enable it
+    with `jax.config.update("jax_enable_x64", True)`; the command line does).
 
     **Raises:** `ValueError` when a path does not exist, a folder has no loop files,
     or `decimate` or `window` is not a positive integer.
     """
+    _warn_without_float64("screen")
     decimate = decimation_factor(decimate)  # a bad factor fails before any file is read
     window = None if window is None else window_length(window)  # as `decimate`: before any file is read
     items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate,
