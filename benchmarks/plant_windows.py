@@ -56,25 +56,32 @@ def main():
     for n in names:
         out[n] = {"label": labels.get(n, {}).get("label"), "valve": labels.get(n, {}).get("valve"),
                   **{p: {"verdict": entries[f"{n}@{p}"]["verdict"],
-                         "stiction_probability": entries[f"{n}@{p}"]["stiction_probability"]} for p in PARTS}}
+                         "stiction_probability": entries[f"{n}@{p}"]["stiction_probability"],
+                         "status": entries[f"{n}@{p}"]["status"]} for p in PARTS}}
     sticky = lambda r, p: r[p]["verdict"] == "stiction"  # noqa: E731
     changed = {p: [n for n, r in out.items() if sticky(r, p) != sticky(r, "whole")] for p in ("head", "tail")}
+    if args.json:
+        print(json.dumps({"keep": args.keep, "recordings": out, "changed": changed}))
+        return
     right = {p: (sum(sticky(r, p) for r in out.values() if r["label"] == "stiction"),
                  sum(not sticky(r, p) for r in out.values() if r["label"] == "none")) for p in PARTS}
     n_s = sum(r["label"] == "stiction" for r in out.values())
     n_h = sum(r["label"] == "none" for r in out.values())
-    if args.json:
-        print(json.dumps({"keep": args.keep, "recordings": out, "changed": changed}))
-        return
-    fmt = lambda r, p: f"{r[p]['verdict'][:12]:<12} {r[p]['stiction_probability'] or 0:5.2f}"  # noqa: E731
+
+    def cell(r, p):
+        prob = r[p]["stiction_probability"]
+        return f"{r[p]['verdict'][:12]:<12} {'–' if prob is None else f'{prob:.2f}':>5}"
+
     print(f"{'rec':<5} {'label':<9} " + " ".join(f"{p:<18}" for p in PARTS))
     for n, r in out.items():
-        print(f"{n:<5} {r['label']:<9} " + " ".join(fmt(r, p) for p in PARTS))
+        print(f"{n:<5} {r['label']:<9} " + " ".join(cell(r, p) for p in PARTS))
     for p in PARTS:
         print(f"{p:>5}: sticky called sticky {right[p][0]}/{n_s}, healthy not called sticky {right[p][1]}/{n_h}")
+        failed = [n for n, r in out.items() if r[p]["status"] != "ok"]
+        if failed:  # a record too short to fit: no probability
+            print(f"       {len(failed)} of {len(out)} could not be screened, e.g. {out[failed[0]][p]['status']}")
     for p, c in changed.items():
         print(f"{p:>5}: the call differs from the whole record's on {len(c)} of {len(out)}: {', '.join(c) or '-'}")
-
 
 if __name__ == "__main__":
     main()
