@@ -518,6 +518,11 @@ _DECIMATE_HELP = ("fit the record at a K times longer sampling time, the means o
                   "sampled much faster than its loop moves: delays, orders and horizons count samples)")
 
 
+_TAGS_HELP = ("the valve of each recording: a JSON object name -> tag (or a labels.json whose `loops` give each a "
+              "`valve`), or a CSV with name and tag columns; default: a `tag` column, else the file name up to its "
+              "last _ or -")
+
+
 def build_parser():
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -589,8 +594,7 @@ def build_parser():
                    help="also one verdict per valve, its recordings grouped by tag (a `tag` column, else the file "
                         "name up to its last _ or -): the verdict of most of its judged recordings")
     s.add_argument("--tags", metavar="FILE", default=None,
-                   help="implies --by-valve: the valve of each recording, a JSON object name -> tag (or a "
-                        "labels.json whose `loops` give each a `valve`), or a CSV with name and tag columns")
+                   help="implies --by-valve; " + _TAGS_HELP)
     s.set_defaults(func=cmd_screen)
     g = sub.add_parser("diagnose", parents=[common],
                        help="locate, name and model what a nominal model leaves out (and prove it on held-out data)")
@@ -628,9 +632,7 @@ def build_parser():
     t.add_argument("-r", "--recursive", action="store_true", help="also the loop files in subfolders")
     t.add_argument("--ts", type=float, default=None, help="sampling time (s) for files without a t column")
     t.add_argument("--tags", metavar="FILE", default=None,
-                   help="the valve of each recording: a JSON object name -> tag (or a labels.json whose `loops` "
-                        "give each a `valve`), or a CSV with name and tag columns; default: a `tag` column, else "
-                        "the file name up to its last _ or -")
+                   help=_TAGS_HELP)
     t.set_defaults(func=cmd_trend)
     return p
 
