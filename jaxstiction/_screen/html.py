@@ -415,7 +415,7 @@ def write_html(report, path: Path) -> Path:
 Click a column heading to sort (again to reverse; <b>#</b> restores the rank), hover over a heading for its
 meaning, and click a picture to enlarge it.</p>
 {_summary(loops)}
-{_valves(getattr(report, "valves", None))}
+{_valves(report.valves)}
 {_legend()}
 {_controls(loops)}
 <table class="loops" id="loops"><colgroup>{cols}</colgroup>
