@@ -114,3 +114,29 @@ def test_verdict_oracle(monkeypatch, capsys):
     _run(monkeypatch, "verdict_oracle.py", "--seeds", "0-19")
     out = capsys.readouterr().out
     assert "oracle, free gain" in out and "oracle, known gain" in out
+
+
+def test_split_half(monkeypatch, capsys):
+    # each split judges half of the sticky and half of the healthy valves, fitted on
+    # the rest; a perfect caller reaches 0.80 on every split, one that never calls
+    # sticky on none, and then every sticky recording is listed as judged wrong
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import calibrate_probability as cp
+
+    real = [{"set": "plant", "name": f"L{i}", "valve": f"V{i // 2}", "label": i < 6} for i in range(16)]
+    real.append({"set": "isdb", "name": "CHEM1", "valve": "CHEM1", "label": True})
+    fitted = []
+    monkeypatch.setattr(cp, "fit", lambda sim, train: fitted.append(train) or None)
+    monkeypatch.setattr(cp, "called", lambda e, cal: e["label"])
+    cp.split_half([], real, 10)
+    out = capsys.readouterr().out
+    assert "8 labelled plant valves (3 sticky)" in out
+    assert "10 of 10 splits reach 0.80" in out and "right on" not in out
+    for train in fitted:
+        assert any(e["set"] == "isdb" for e in train)
+        assert len({e["valve"] for e in train if e["set"] == "plant" and e["label"]}) in (1, 2)
+        assert len({e["valve"] for e in train if e["set"] == "plant" and not e["label"]}) in (2, 3)
+    monkeypatch.setattr(cp, "called", lambda e, cal: False)
+    cp.split_half([], real, 10)
+    out = capsys.readouterr().out
+    assert "0 of 10 splits reach 0.80" in out and "L0     V0" in out and "right on 0.00" in out
