@@ -2,6 +2,7 @@
 
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -14,6 +15,15 @@ def json_number(v, nd: int = 3):
         return None
     v = float(v)
     return round(v, nd) if math.isfinite(v) else None
+
+
+def warn_without_float64(caller: str, why: str) -> None:
+    """Warn, as from the caller of host API `caller`, when JAX runs in float32;
+    `why` says what float32 changes there. The library never turns float64 on itself."""
+    if not jax.config.jax_enable_x64:
+        warnings.warn(f"jaxstiction.{caller} runs in float32 (jax_enable_x64 is off), but {why}. Call "
+                      "jax.config.update('jax_enable_x64', True) before creating any array.", UserWarning,
+                      stacklevel=3)
 
 
 def release_freed_memory() -> bool:

@@ -1,6 +1,9 @@
 """The public `fit`: bad input, and CHEM23 held out (skipped without ISDB)."""
 
 
+import contextlib
+
+import jax
 import numpy as np
 import pytest
 
@@ -79,3 +82,28 @@ def test_chem11_chosen_model_stays_in_range(isdb):
     r = js.fit(loop.op, loop.pv, ts=loop.ts, name="CHEM11")
     assert r.fitness > 70.0 and r.fitness_estimation > 70.0
     assert np.all(np.abs(r.pv_sim - np.mean(loop.pv)) < 3 * np.ptp(loop.pv))
+
+
+def test_the_host_api_warns_in_float32(tmp_path):
+    """The solvers were tested, and the probability calibrated, in float64: the host
+    API says so in float32 (the library never turns float64 on by itself), and stays
+    silent in float64, where the suite's filter would raise on a warning."""
+    (tmp_path / "empty.csv").write_text("")
+    op, pv = _loop()
+    constant = np.full_like(op, 42.0)  # bad input: each call stops early, after the warning
+    calls = {
+        "fit": lambda: js.fit(constant, pv),
+        "diagnose": lambda: js.diagnose(js.make_loop(constant, pv)),
+        "screen": lambda: js.screen(tmp_path),
+        "screen_loops": lambda: js.screen_loops({}),
+    }
+    for name, call in calls.items():
+        def stops():
+            return pytest.raises(ValueError) if name in ("fit", "diagnose") else contextlib.nullcontext()
+
+        with jax.enable_x64(False):
+            with pytest.warns(UserWarning, match=f"jaxstiction.{name} runs in float32"), stops():
+                call()
+        with stops():
+            call()
+

@@ -4,7 +4,6 @@ that need no fit."""
 
 import json
 
-import jax
 import pytest
 from helpers import run
 
@@ -109,17 +108,3 @@ def test_cli_screen_by_valve(tmp_path):
     res = run("screen", str(folder), "--tags", str(bad))
     assert res.returncode != 0 and "tags.csv: the tags file needs `name` and `tag` columns" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
-
-
-def test_the_screen_warns_in_float32(tmp_path):
-    """The probability was calibrated on float64 evidence: a screen in float32 says
-    so (the library does not switch float64 on by itself)."""
-    (tmp_path / "empty.csv").write_text("")
-
-    with jax.enable_x64(False):
-        with pytest.warns(UserWarning, match="float32"):
-            js.screen(tmp_path)
-        with pytest.warns(UserWarning, match="float32"):
-            js.screen_loops({})
-    rep = js.screen(tmp_path)  # float64 (conftest): no warning, which the suite's filter would raise
-    assert rep.loops[0]["status"] != "ok"

@@ -64,6 +64,7 @@ from .._estimate.estimate import estimate
 from .._estimate.settings import SCREEN_ESTIMATE
 from .._filters import lfilter
 from .._loop import bucket_length, make_loop, pad
+from .._misc import warn_without_float64
 from .._models import LoopModel, NoiseModel
 from .._verdict.gate import GATES
 from .._verdict.verdict import verdict, verdict_reason, VERDICTS
@@ -172,8 +173,12 @@ def diagnose(loop, nominal: LoopModel | None = None, settings: DiagnoseSettings 
     `DiagnoseSettings`; `progress`: optional callable taking a message; `name`:
     the loop's name, which prefixes data errors.
 
-    **Returns:** a `Diagnosis`. Raises `ValueError` (one line) on bad data.
+    **Returns:** a `Diagnosis`. Raises `ValueError` (one line) on bad data. Warns
+    when JAX runs in float32 (enable float64 with
+    `jax.config.update("jax_enable_x64", True)`; the command line does).
     """
+    warn_without_float64("diagnose", "its fits and its stiction verdict (the screen's, whose probability was "
+                                     "calibrated on float64 evidence) were developed in float64")
     say = progress or (lambda msg: None)
     b = _baseline(loop, nominal, settings, say, name)
     g = _Grid.build(b, settings)

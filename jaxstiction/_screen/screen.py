@@ -14,13 +14,13 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
 from .._checks import error_line, LoopDataError, LoopDataWarning, one_line
 from .._estimate.report import checked
 from .._io.read import find_loop_files, list_loops, loop_name, read_loop
 from .._loop import decimate as decimated, decimation_factor, Loop, window_length, windows
+from .._misc import warn_without_float64
 from .batch import _dask_client, _error, _run
 from .causes import _to_diagnose, diagnose_causes
 from .settings import ScreenSettings
@@ -96,14 +96,8 @@ def _message(e: BaseException) -> str:
     return f"unreadable: {error_line(e, 300)}"
 
 
-def _warn_without_float64(caller: str) -> None:
-    """A warning when JAX runs in float32: the stiction probability was calibrated
-    on float64 evidence. The library never turns float64 on itself."""
-    if not jax.config.jax_enable_x64:
-        warnings.warn(f"jaxstiction.{caller} runs in float32 (jax_enable_x64 is off), but its stiction probability "
-                      "was calibrated on float64 evidence: on the plant development records float32 moves it by "
-                      "up to 0.19. Call jax.config.update('jax_enable_x64', True) before creating any array.",
-                      UserWarning, stacklevel=3)
+_FLOAT32 = ("its stiction probability was calibrated on float64 evidence: on the plant development records "
+            "float32 moves it by up to 0.19")
 
 
 def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSettings = ScreenSettings(), *,
@@ -113,7 +107,7 @@ def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSe
     (real samples only), or `(name, file, op, pv, ts[, sp])` items as from `read_items`.
     Returns one entry per loop, in input order (see [`jaxstiction.screen`][]).
     Warns when JAX runs in float32, as `screen` does."""
-    _warn_without_float64("screen_loops")
+    warn_without_float64("screen_loops", _FLOAT32)
     if isinstance(loops, Mapping):
         items, errors = [], []
         for name, lp in loops.items():
@@ -253,7 +247,7 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     **Raises:** `ValueError` when a path does not exist, a folder has no loop files,
     or `decimate` or `window` is not a positive integer.
     """
-    _warn_without_float64("screen")
+    warn_without_float64("screen", _FLOAT32)
     decimate = decimation_factor(decimate)  # a bad factor fails before any file is read
     window = None if window is None else window_length(window)  # as `decimate`: before any file is read
     items, errors, warned = read_items(paths, ts=ts, settings=settings, recursive=recursive, decimate=decimate,
