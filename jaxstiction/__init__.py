@@ -4,7 +4,7 @@ closed-loop OP/PV data, in JAX. See README.md.
 This is what a user calls; `jaxstiction.internal` holds the stages and helpers
 that research code, benchmarks and tests take from inside."""
 
-import importlib.metadata
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError, version as _version
 
 from ._blocks import (
     AbstractBlock as AbstractBlock,
@@ -90,6 +90,6 @@ from ._whatif.whatif import compensate as compensate, WhatIf as WhatIf, whatif a
 
 
 try:
-    __version__ = importlib.metadata.version("jaxstiction")
-except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = _version("jaxstiction")
+except _PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0+unknown"

@@ -157,3 +157,16 @@ def test_the_checker_sees_cycles_and_upward_imports(monkeypatch):
         test_no_import_cycle()
     with pytest.raises(AssertionError, match="not below it"):
         test_imports_run_downward("_checks")
+
+
+def test_the_public_surface_holds_no_stray_modules():
+    """What `import jaxstiction` shows is the API: no module it imported on the way
+    (a standard-library helper) is left among its public names; `internal` is the
+    one module there on purpose."""
+    import types
+
+    import jaxstiction
+
+    stray = [k for k, v in vars(jaxstiction).items()
+             if not k.startswith("_") and isinstance(v, types.ModuleType) and k != "internal"]
+    assert not stray, f"jaxstiction exposes modules {stray}"
