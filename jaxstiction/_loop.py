@@ -184,6 +184,19 @@ def windows(loop: Loop, length: int) -> list[tuple[int, int, Loop]]:
             for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def window_name(name: str, start: int, stop: int) -> str:
+    """The name of samples `start` to `stop` (stop excluded) of recording `name`:
+    `NAME@START-STOP`; `recording_of` reads it back."""
+    return f"{name}@{start}-{stop}"
+
+
+def recording_of(name: str) -> str:
+    """The recording a window named by `window_name` comes from; any other name as it is."""
+    head, at, span = name.rpartition("@")
+    start, dash, stop = span.partition("-")
+    return head if at and dash and start.isdigit() and stop.isdigit() else name
+
+
 def unstack(batch: Loop) -> list[Loop]:
     """The members of a batched loop, each cut back to its real samples."""
     out = []

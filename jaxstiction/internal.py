@@ -109,7 +109,13 @@ from ._fleet import (
     RUN_IN as FLEET_RUN_IN,
 )
 from ._linalg import is_stable as is_stable, lstsq as lstsq
-from ._loop import bucket_length as bucket_length, pad as pad, windows as windows
+from ._loop import (
+    bucket_length as bucket_length,
+    pad as pad,
+    recording_of as recording_of,
+    window_name as window_name,
+    windows as windows,
+)
 from ._misc import (
     chunked_vmap as chunked_vmap,
     coarse as coarse,

@@ -200,7 +200,7 @@ def test_read_items_cuts_long_records_into_windows(tmp_path):
     record stays one item under its own name; a window too short to fit is that
     window's error; a bad length fails before any file is read."""
     from jaxstiction import screen
-    from jaxstiction.internal import read_items
+    from jaxstiction.internal import read_items, recording_of
 
     rng = np.random.default_rng(4)
     op, pv = 50 + rng.normal(0, 1, 3001), rng.normal(0, 1, 3001)
@@ -209,6 +209,8 @@ def test_read_items_cuts_long_records_into_windows(tmp_path):
     items, errors, _ = read_items([tmp_path], window=1200)
     assert not errors
     assert [it[0] for it in items] == ["FC1@0-1000", "FC1@1000-2000", "FC1@2000-3001", "FC2"]
+    assert [recording_of(it[0]) for it in items] == ["FC1", "FC1", "FC1", "FC2"]  # read back
+    assert recording_of("FC1@3000-6000x") == "FC1@3000-6000x" and recording_of("a@b-1") == "a@b-1"
     np.testing.assert_allclose(items[1][2], op[1000:2000])
     np.testing.assert_allclose(items[2][3], pv[2000:])
     assert items[3][2].shape == (900,)

@@ -19,7 +19,7 @@ import numpy as np
 from .._checks import error_line, LoopDataError, LoopDataWarning, one_line
 from .._estimate.report import checked
 from .._io.read import find_loop_files, list_loops, loop_name, read_loop
-from .._loop import decimate as decimated, decimation_factor, Loop, window_length, windows
+from .._loop import decimate as decimated, decimation_factor, Loop, window_length, window_name, windows
 from .._misc import warn_without_float64
 from .batch import _dask_client, _error, _run
 from .causes import _to_diagnose, diagnose_causes
@@ -72,7 +72,7 @@ def read_items(paths, *, ts: float | None = None, settings: ScreenSettings = Scr
                 parts = [(0, None, loop)] if window is None else windows(loop, window)
                 said = [str(w.message) for w in caught if issubclass(w.category, LoopDataWarning)]
                 for a, b, part in parts:
-                    part_name = name if len(parts) == 1 else f"{name}@{a}-{b}"
+                    part_name = name if len(parts) == 1 else window_name(name, a, b)
                     taken.add(part_name)
                     try:
                         op, pv = checked(np.asarray(part.op), np.asarray(part.pv), part_name, settings.estimate)

@@ -22,14 +22,8 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from .._io.tags import natural_key, tag_of
+from .._loop import recording_of
 from .html import verdict_of
-
-
-def _recording(name: str) -> str:
-    """The recording a screen entry comes from: its name without a window's
-    `@START-STOP`."""
-    head, at, span = name.rpartition("@")
-    return head if at and span.replace("-", "").isdigit() else name
 
 
 def valve_verdicts(loops: list[dict], mapping: Mapping[str, str] | None = None) -> list[dict]:
@@ -42,7 +36,7 @@ def valve_verdicts(loops: list[dict], mapping: Mapping[str, str] | None = None) 
     groups: dict[str, list[dict]] = {}
     for r in loops:
         name = str(r.get("name", ""))
-        rec = _recording(name)
+        rec = recording_of(name)
         path = Path(r.get("file") or rec)
         groups.setdefault(tag_of(rec, path, mapping), []).append(r)
     out = []
