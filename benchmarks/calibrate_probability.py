@@ -43,6 +43,7 @@ Printed:
   valves it never saw, as the hidden half is judged: N random splits of the
   labelled plant valves into halves, the probability fitted on the fleet, the ISDB
   and one half, the other half judged (`split_half`).
+- `--l2 X` fits with another penalty on the standardised weights (shipped: 1).
 
 `--shipped` scores the shipped coefficients on the check seeds instead of those
 fitted in the run (the leave-one-out figures always refit).
@@ -86,6 +87,7 @@ REAL_SHARE = 2 / 3  # of the total weight carried by the real records (--real-sh
 BALANCED = True  # sticky and healthy weigh the same in each part (--natural-odds: as drawn)
 COLUMNS = FEATURES  # what the probability is fitted on (--limit-cycle adds one)
 DROPPED = frozenset()  # columns taken as missing everywhere (--drop)
+L2 = 1.0  # the logistic regression's penalty on the standardised weights (--l2)
 # --integrating: the flag, and the evidence it multiplies
 INTEGRATING = ("evidence", "evidence_estimation", "evidence_prediction", "crossval")
 
@@ -236,7 +238,7 @@ def fit(sim, real):
     X = np.concatenate([matrix(sim), matrix(real)]) if real else matrix(sim)
     ys = [e["truth"]["sticky"] for e in sim]
     yr = [e["label"] for e in real]
-    return fit_calibration(X, np.array(ys + yr, float), weights(ys, yr), names=COLUMNS)
+    return fit_calibration(X, np.array(ys + yr, float), weights(ys, yr), l2=L2, names=COLUMNS)
 
 
 def called(entry, calibration, threshold=0.5):
@@ -392,7 +394,7 @@ def report_sim(check, cal):
 
 
 def main():
-    global REAL_SHARE, BALANCED, COLUMNS, DROPPED
+    global REAL_SHARE, BALANCED, COLUMNS, DROPPED, L2
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--fit-seeds", type=seeds_arg, default=seeds_arg("0-399"))
     parser.add_argument("--check-seeds", type=seeds_arg, default=seeds_arg("400-599"))
@@ -415,6 +417,8 @@ def main():
                              "evidence by process type would add)")
     parser.add_argument("--shipped", action="store_true",
                         help="score the shipped coefficients on the check seeds, instead of those fitted here")
+    parser.add_argument("--l2", type=float, default=L2,
+                        help="the penalty on the standardised weights (the fit's total weight is about 1200)")
     parser.add_argument("--split-half", type=int, default=0, metavar="N",
                         help="also fit on half of the plant valves and judge the other half, N random splits")
     parser.add_argument("--drop", default="",
@@ -440,6 +444,7 @@ def main():
     if not 0 < args.real_share < 1:
         parser.error("--real-share must lie strictly between 0 and 1")
     REAL_SHARE = args.real_share
+    L2 = args.l2
     BALANCED = not args.natural_odds
 
     out = HERE / "out"
