@@ -10,7 +10,7 @@ This is a stability check, not an accuracy figure: the shipped probability was
 fitted with these records among its real ones (the leave-one-valve-out figures are
 `calibrate_probability.py`'s). It counts the calls that change with the window.
 
-    python benchmarks/plant_windows.py                 # ~4 min on 2 cores
+    python benchmarks/plant_windows.py                 # ~2.5 min on 2 cores
     python benchmarks/plant_windows.py --keep 500
 """
 
@@ -82,6 +82,7 @@ def main():
             print(f"       {len(failed)} of {len(out)} could not be screened, e.g. {out[failed[0]][p]['status']}")
     for p, c in changed.items():
         print(f"{p:>5}: the call differs from the whole record's on {len(c)} of {len(out)}: {', '.join(c) or '-'}")
+
 
 if __name__ == "__main__":
     main()

@@ -106,4 +106,3 @@ def test_the_host_api_warns_in_float32(tmp_path):
                 call()
         with stops():
             call()
-
