@@ -2,6 +2,7 @@
 
 import math
 import os
+import sys
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 
@@ -18,12 +19,23 @@ def json_number(v, nd: int = 3):
 
 
 def warn_without_float64(caller: str, why: str) -> None:
-    """Warn, as from the caller of host API `caller`, when JAX runs in float32;
-    `why` says what float32 changes there. The library never turns float64 on itself."""
+    """Warn when JAX runs in float32, as from the user's line that led to host API
+    `caller` (the first frame outside the package: `valve_trend` calls `fit`, the
+    screen's cause diagnosis `diagnose`); `why` says what float32 changes there.
+    The library never turns float64 on itself."""
     if not jax.config.jax_enable_x64:
         warnings.warn(f"jaxstiction.{caller} runs in float32 (jax_enable_x64 is off), but {why}. Call "
                       "jax.config.update('jax_enable_x64', True) before creating any array.", UserWarning,
-                      stacklevel=3)
+                      stacklevel=_levels_inside_package() + 1)
+
+
+def _levels_inside_package() -> int:
+    """How many frames, from its caller outwards, run this package's code."""
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, levels = sys._getframe(1), 0
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        frame, levels = frame.f_back, levels + 1
+    return levels
 
 
 def release_freed_memory() -> bool:

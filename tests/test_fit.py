@@ -91,18 +91,25 @@ def test_the_host_api_warns_in_float32(tmp_path):
     (tmp_path / "empty.csv").write_text("")
     op, pv = _loop()
     constant = np.full_like(op, 42.0)  # bad input: each call stops early, after the warning
+    trend = tmp_path / "trend"
+    trend.mkdir()
+    (trend / "valve_1.csv").write_text("OP,PV\n" + "".join(f"42,{v}\n" for v in pv))
     calls = {
         "fit": lambda: js.fit(constant, pv),
         "diagnose": lambda: js.diagnose(js.make_loop(constant, pv)),
-        "screen": lambda: js.screen(tmp_path),
+        "screen": lambda: js.screen(tmp_path / "empty.csv"),
         "screen_loops": lambda: js.screen_loops({}),
+        "valve_trend": lambda: js.valve_trend([trend]),  # its `fit` warns: constant OP, no S
     }
     for name, call in calls.items():
         def stops():
             return pytest.raises(ValueError) if name in ("fit", "diagnose") else contextlib.nullcontext()
 
+        warned = "fit" if name == "valve_trend" else name
         with jax.enable_x64(False):
-            with pytest.warns(UserWarning, match=f"jaxstiction.{name} runs in float32"), stops():
+            with pytest.warns(UserWarning, match=f"jaxstiction.{warned} runs in float32") as caught, stops():
                 call()
+        # it points at the user's line, not at the library's
+        assert {w.filename for w in caught} == {__file__}, name
         with stops():
             call()
