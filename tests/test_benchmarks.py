@@ -10,6 +10,7 @@ import pathlib
 import runpy
 import sys
 
+import numpy as np
 import pytest
 
 
@@ -140,3 +141,20 @@ def test_split_half(monkeypatch, capsys):
     cp.split_half([], real, 10)
     out = capsys.readouterr().out
     assert "0 of 10 splits reach 0.80" in out and "L0     V0" in out and "right on 0.00" in out
+
+
+def test_the_shipped_probability_weighs_the_indicators_only(monkeypatch, capsys):
+    # the written calibration gives the unweighed model-based features no weight,
+    # as `--write` fits it; `--write` refuses any other set of features
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import calibrate_probability as cp
+
+    from jaxstiction.internal import CALIBRATION, FEATURES
+
+    assert set(cp.UNWEIGHED) < set(FEATURES) and cp.DROPPED == frozenset(cp.UNWEIGHED)
+    weights = dict(zip(CALIBRATION.names, np.asarray(CALIBRATION.weights)))
+    assert all(weights[k] == 0 for k in cp.UNWEIGHED)
+    assert all(weights[k] != 0 for k in FEATURES if k not in cp.UNWEIGHED)
+    with pytest.raises(SystemExit) as exit_:
+        _run(monkeypatch, "calibrate_probability.py", "--write", "--drop", "none")
+    assert exit_.value.code == 2 and "cannot be combined with --write" in capsys.readouterr().err
