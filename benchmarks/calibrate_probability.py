@@ -438,7 +438,7 @@ def main():
                              "no weight), to measure what they add; 'none' weighs every feature (default: the "
                              "model-based evidence, as shipped)")
     args = parser.parse_args()
-    dropped = [k for k in args.drop.split(",") if k and args.drop != "none"]
+    dropped = [] if args.drop == "none" else [k for k in args.drop.split(",") if k]
     if args.limit_cycle and args.write:
         parser.error("--limit-cycle is a measurement: it cannot be combined with --write")
     COLUMNS = FEATURES + (("limit_cycle",) if args.limit_cycle else ())
@@ -449,9 +449,10 @@ def main():
     if set(dropped) - set(COLUMNS):
         parser.error(f"--drop: unknown features {sorted(set(dropped) - set(COLUMNS))}; they are {COLUMNS}")
     DROPPED = frozenset(dropped)
-    if set(dropped) != set(UNWEIGHED) and args.write:
+    as_shipped = DROPPED == frozenset(UNWEIGHED)
+    if not as_shipped and args.write:
         parser.error("--drop is a measurement: it cannot be combined with --write")
-    if args.shipped and (args.write or args.limit_cycle or set(dropped) != set(UNWEIGHED) or args.integrating):
+    if args.shipped and (args.write or args.limit_cycle or not as_shipped or args.integrating):
         parser.error("--shipped scores the shipped coefficients: it cannot be combined with --write, "
                      "--limit-cycle, --integrating or --drop")
     if not 0 < args.real_share < 1:
