@@ -47,8 +47,7 @@ def diagnose_entry(entry: dict, op, pv, ts, settings, *, enable_x64: bool = Fals
         return _noted(r, f"diagnose failed, cause from the screen: {error_line(e, 300)}")
     r["diagnosis"] = {"verdict": d.verdict, "runner_up": d.runner_up, "accepted": list(d.accepted)}
     if d.verdict == "stiction":
-        return _noted(r, "diagnose names stiction, which the screen's held-out test did not confirm; "
-                         "cause from the screen")
+        return _noted(r, "diagnose names stiction, which the screen's verdict did not; cause from the screen")
     r["cause"] = d.verdict
     return r
 
@@ -65,8 +64,8 @@ def diagnose_causes(results: Sequence[dict], items: Sequence[tuple], settings: A
     screen's own residual-line test: its whole vocabulary (`deadband`, `dead_time`,
     `saturation`, `external_oscillation`, `drift`, `quantization`, `none`, ...), at
     ~10-80 s per loop. Each such entry gains `diagnosis` (`verdict`, `runner_up`,
-    `accepted`). A diagnosis that names stiction where the screen's held-out test did
-    not leaves the screen's cause and says so in the `note`; a diagnosis that fails
+    `accepted`). A diagnosis that names stiction where the screen's verdict did not
+    leaves the screen's cause and says so in the `note`; a diagnosis that fails
     (or whose Dask task is lost) leaves it too, with the one-line error in the `note`.
 
     `results`: entries of `screen_loops`; `items`: the `(name, file, op, pv, ts)`

@@ -206,11 +206,14 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
     for sticky valves, and name the cause of the others.
 
     Each loop gets [`jaxstiction.estimate`][] (batched with the other loops of its
-    length bucket) and [`jaxstiction.verdict`][]: `stiction_detected` when Kano's
-    valve beats a linear valve on held-out data, `slip_identified` when its slip
-    jump is seen, and a `cause` (`stiction`, `external_oscillation`, `none`; with
-    `diagnose`, the diagnosis verdict of a loop not called sticky). A loop that cannot be read or fitted
-    gets `status` with a one-line error; the others are unaffected.
+    length bucket) and [`jaxstiction.verdict`][]: a `verdict` (`stiction`,
+    `no_stiction` or `inconclusive`, with the data-quality gate's reason) from the
+    calibrated `stiction_probability` (and, under setpoint moves, the model-based
+    test), `stiction_detected` when the verdict is `stiction`, `slip_identified`
+    when the valve's slip jump is seen, and a `cause` (`stiction`,
+    `external_oscillation`, `none`; with `diagnose`, the diagnosis verdict of a loop
+    not called sticky). A loop that cannot be read or fitted gets `status` with a
+    one-line error and the verdict `inconclusive`; the others are unaffected.
 
     **Arguments:**
 
