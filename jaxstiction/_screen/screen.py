@@ -96,8 +96,8 @@ def _message(e: BaseException) -> str:
     return f"unreadable: {error_line(e, 300)}"
 
 
-_FLOAT32 = ("its stiction probability was calibrated on float64 evidence: on the plant development records "
-            "float32 moves it by up to 0.19")
+_FLOAT32 = ("its verdict was calibrated on float64 evidence, and float32 changes the fits it reports (the band, "
+            "S and J) and the model-based test that decides under setpoint moves")
 
 
 def screen_loops(loops: Mapping[str, Loop] | Sequence[tuple], settings: ScreenSettings = ScreenSettings(), *,
@@ -244,8 +244,9 @@ def screen(paths: str | os.PathLike | Iterable[str | os.PathLike], settings: Scr
       e.g. from `read_tags`) is asked first.
 
     **Returns:** a [`jaxstiction.ScreenReport`][]. A `UserWarning` says so when JAX
-    runs in float32: the probability was calibrated on float64 evidence (enable it
-    with `jax.config.update("jax_enable_x64", True)`; the command line does).
+    runs in float32: the verdict was calibrated on float64 evidence, and float32
+    changes the fits (enable float64 with `jax.config.update("jax_enable_x64", True)`;
+    the command line does).
 
     **Raises:** `ValueError` when a path does not exist, a folder has no loop files,
     or `decimate` or `window` is not a positive integer.
