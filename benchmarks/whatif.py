@@ -34,7 +34,8 @@ the designed knocker. Also `oracle`: `whatif_model` of the true plant model (the
 method with a perfect fit). Prints per loop (S and J: the plant's, the fit's, and
 the ones replayed after the what-if's polish) and a summary: the share of loops whose
 `error_std_repaired` is within +-15 % of the truth (min, median, which seeds miss),
-Spearman's rho of predicted against true benefit, and the share of a repair's
+Spearman's rho of predicted against true benefit (also over the loops the screen's
+verdict calls sticky, the only ones `screen --whatif` ranks), and the share of a repair's
 variability reduction that the knocker achieves on the true plant, with its travel.
 
 `--ceiling` fits nothing: it runs each true plant with every compensator of a wide
@@ -69,6 +70,7 @@ from jaxstiction import (  # noqa: E402
     KnockerGrid,
     make_loop,
     Settings,
+    verdict,
     whatif,
     WhatIfSettings,
 )
@@ -270,7 +272,9 @@ def one_loop(case, settings: Settings, wset: WhatIfSettings, oracle: bool, desig
     jax.block_until_ready(fit.S)
     t1 = time.perf_counter()
     out = dict(seed=case.seed, kind=case.kind, S=case.S, J=case.J, S_fit=float(fit.S), J_fit=float(fit.J),
-               seconds_fit=t1 - t0, gate_passes=not hard_gated(op, pv, sp))
+               seconds_fit=t1 - t0, gate_passes=not hard_gated(op, pv, sp),
+               # the screen's verdict on this fit: `screen --whatif` ranks only the loops it calls sticky
+               called_sticky=bool(verdict(fit, loop).stiction_detected))
     if true_valve:  # the valve known: the plant's S and J in the fit, its intervals moved along
         dS, dJ = case.S - fit.physical.chain[0].S, case.J - fit.physical.chain[0].J
         fit = eqx.tree_at(lambda f: (f.physical, f.S_interval, f.J_interval), fit,
@@ -391,6 +395,11 @@ def summary(rows, designs) -> dict:
         res["ranking"].update(gate_passes=int(passes.sum()),
                               spearman_benefit_gate_passes=spearman(pb[passes], tb[passes]),
                               within_15_gate_passes=int(np.sum(ok & passes)))
+    called = np.array([r.get("called_sticky", True) for r in rows])
+    if not called.all() and called.sum() > 2:  # what `screen --whatif` ranks
+        res["ranking"].update(called_sticky=int(called.sum()),
+                              spearman_benefit_called_sticky=spearman(pb[called], tb[called]),
+                              within_15_called_sticky=int(np.sum(ok & called)))
     for design in designs:
         tag = "" if design == "grid" else f"_{design}"
         share = np.array([(r[f"true_asis{tag}"] - r[f"true_comp{tag}"]) / (r[f"true_asis{tag}"] - r[f"true_rep{tag}"])
